@@ -1,0 +1,149 @@
+r"""Discrete Lagrangians, discrete Legendre maps and the discrete Euler–Lagrange residual.
+
+A discrete Lagrangian $L_d(q_0, q_1) \approx \int_{t_0}^{t_0 + h} L\,dt$ is written here
+through its *average* $\Lambda(q_0, v) = L_d(q_0, q_0 + h v) / h$ with
+$v = (q_1 - q_0)/h$. By the chain rule
+
+$$D_1 L_d = h\,\partial_{q_0}\Lambda - \partial_v \Lambda, \qquad
+D_2 L_d = \partial_v \Lambda,$$
+
+so the position–momentum step $p_0 = -D_1 L_d(q_0, q_1)$, $p_1 = D_2 L_d(q_0, q_1)$
+becomes: solve $p_0 + h\,\partial_{q_0}\Lambda - \partial_v \Lambda = 0$ for $v$, then
+$p_1 = p_0 + h\,\partial_{q_0}\Lambda$. Neither involves $q_1 - q_0$ or a division by
+$h$, so nothing cancels as $h \to 0$, and the Newton matrix is
+$\partial^2 L/\partial v^2 + O(h)$, well conditioned for small steps.
+"""
+
+import abc
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.tree_util as jtu
+import optimistix as optx
+
+from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
+from ._lagrangian import AbstractLagrangian, lagrangian_value
+from ._misc import momentum_scale, tree_axpy
+
+
+class AbstractDiscreteLagrangian(eqx.Module):
+    """A quadrature rule that turns a Lagrangian into a discrete Lagrangian."""
+
+    @abc.abstractmethod
+    def average(
+        self,
+        lagrangian: AbstractLagrangian,
+        t0: RealScalarLike,
+        h: RealScalarLike,
+        q0: Q,
+        v: V,
+        args: Args,
+    ) -> Scalar:
+        r"""$\Lambda(q_0, v) = L_d(q_0, q_0 + h v) / h$."""
+
+
+class MidpointRule(AbstractDiscreteLagrangian):
+    r"""$L_d(q_0, q_1) = h\,L\big(t_0 + \tfrac h2, \tfrac{q_0 + q_1}2,
+    \tfrac{q_1 - q_0}h\big)$ (the seed's (3.3))."""
+
+    def average(self, lagrangian, t0, h, q0, v, args):
+        q_mid = tree_axpy(0.5 * h, v, q0)
+        return lagrangian_value(lagrangian, t0 + 0.5 * h, q_mid, v, args)
+
+
+class TrapezoidalRule(AbstractDiscreteLagrangian):
+    r"""$L_d(q_0, q_1) = \tfrac h2\big[L(t_0, q_0, v) + L(t_0 + h, q_1, v)\big]$ with
+    $v = (q_1 - q_0)/h$."""
+
+    def average(self, lagrangian, t0, h, q0, v, args):
+        q1 = tree_axpy(h, v, q0)
+        return 0.5 * (
+            lagrangian_value(lagrangian, t0, q0, v, args)
+            + lagrangian_value(lagrangian, t0 + h, q1, v, args)
+        )
+
+
+def discrete_lagrangian(
+    rule: AbstractDiscreteLagrangian,
+    lagrangian: AbstractLagrangian,
+    t0: RealScalarLike,
+    t1: RealScalarLike,
+    q0: Q,
+    q1: Q,
+    args: Args,
+) -> Scalar:
+    """$L_d(q_0, q_1)$ on the step from `t0` to `t1`."""
+    h = t1 - t0
+    v = jtu.tree_map(lambda a, b: (b - a) / h, q0, q1)
+    return h * rule.average(lagrangian, t0, h, q0, v, args)
+
+
+def d1_ld(rule, lagrangian, t0, t1, q0, q1, args) -> P:
+    """$D_1 L_d(q_0, q_1)$."""
+    return jax.grad(discrete_lagrangian, argnums=4)(
+        rule, lagrangian, t0, t1, q0, q1, args
+    )
+
+
+def d2_ld(rule, lagrangian, t0, t1, q0, q1, args) -> P:
+    """$D_2 L_d(q_0, q_1)$."""
+    return jax.grad(discrete_lagrangian, argnums=5)(
+        rule, lagrangian, t0, t1, q0, q1, args
+    )
+
+
+def del_residual(
+    rule: AbstractDiscreteLagrangian,
+    lagrangian: AbstractLagrangian,
+    ts: tuple[RealScalarLike, RealScalarLike, RealScalarLike],
+    qs: tuple[Q, Q, Q],
+    args: Args,
+) -> P:
+    r"""The discrete Euler–Lagrange residual (the seed's (3.1))
+    $F(q_{k-1}, q_k, q_{k+1}) = D_2 L_d(q_{k-1}, q_k) + D_1 L_d(q_k, q_{k+1})$."""
+    t_prev, t, t_next = ts
+    q_prev, q, q_next = qs
+    a = d2_ld(rule, lagrangian, t_prev, t, q_prev, q, args)
+    b = d1_ld(rule, lagrangian, t, t_next, q, q_next, args)
+    return jtu.tree_map(lambda x, y: x + y, a, b)
+
+
+def _average_grads(rule, lagrangian, t0, h, q0, v, args) -> tuple[P, P]:
+    return jax.grad(rule.average, argnums=(3, 4))(lagrangian, t0, h, q0, v, args)
+
+
+def discrete_hamiltonian_map(
+    rule: AbstractDiscreteLagrangian,
+    lagrangian: AbstractLagrangian,
+    t0: RealScalarLike,
+    h: RealScalarLike,
+    q0: Q,
+    p0: P,
+    args: Args,
+    v_guess: V,
+    root_finder: optx.AbstractRootFinder,
+    max_steps: int,
+) -> tuple[Q, P, V, dfx.RESULTS]:
+    r"""One step of the position–momentum form: solve $p_0 = -D_1 L_d(q_0, q_1)$ for
+    $q_1$, then $p_1 = D_2 L_d(q_0, q_1)$.
+
+    **Returns:**
+
+    `(q1, p1, v, result)` with `v = (q1 - q0)/h` the step's velocity.
+    """
+
+    scale = momentum_scale(p0)
+
+    def residual(v, _):
+        dq, dv = _average_grads(rule, lagrangian, t0, h, q0, v, args)
+        return jtu.tree_map(lambda p, a, b: (p + h * a - b) / scale, p0, dq, dv)
+
+    sol = optx.root_find(
+        residual, root_finder, v_guess, max_steps=max_steps, throw=False
+    )
+    v = sol.value
+    dq, _ = _average_grads(rule, lagrangian, t0, h, q0, v, args)
+    q1 = tree_axpy(h, v, q0)
+    p1 = tree_axpy(h, dq, p0)
+    return q1, p1, v, dfx.RESULTS.promote(sol.result)

@@ -1,0 +1,104 @@
+import equinox.internal as eqxi
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Bool, PyTree
+
+from ._custom_types import P, Q
+
+
+def state_dtype(tree: PyTree) -> np.dtype:
+    """The floating dtype that all arithmetic on `tree` is carried out in."""
+    leaves = jtu.tree_leaves(tree)
+    if len(leaves) == 0:
+        raise ValueError("The state is empty: `q` must contain at least one array.")
+    dtype = jnp.result_type(*leaves)
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(
+            f"The state has dtype {dtype}, but variational solvers need floating "
+            "point positions and momenta. Pass e.g. `jnp.asarray(q0, dtype=float)`."
+        )
+    return dtype
+
+
+def default_tolerance(dtype: np.dtype) -> float:
+    """Newton tolerance that suits `dtype`: `sqrt(eps)`.
+
+    Newton converges quadratically, so once an update is below `sqrt(eps)` (relative)
+    the error left after applying it is at round-off. A tighter tolerance would ask the
+    convergence test to resolve round-off noise, which it reads as divergence.
+    """
+    return float(jnp.finfo(dtype).eps) ** 0.5
+
+
+def default_root_finder(dtype: np.dtype) -> optx.AbstractRootFinder:
+    """Newton's method with tolerances that suit `dtype`.
+
+    It stops when both the update and the residual are small (Cauchy termination).
+    The residuals of this package are momenta divided by [`momentum_scale`][], so the
+    absolute tolerance on them is relative to the size of the momentum.
+    """
+    tol = default_tolerance(dtype)
+    return optx.Newton(rtol=tol, atol=tol)
+
+
+def momentum_scale(p: PyTree) -> Array:
+    """`1 + max|p|`, the scale that momentum residuals are divided by before a root
+    find. Held constant under differentiation: it does not move the root."""
+    leaves = [jnp.max(jnp.abs(x), initial=0.0) for x in jtu.tree_leaves(p)]
+    return jax.lax.stop_gradient(1 + jnp.max(jnp.stack(leaves)))
+
+
+def all_finite(tree: PyTree) -> Bool[Array, ""]:
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jtu.tree_leaves(tree)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
+
+
+def check_state(q: Q, p: P, name: str = "y0") -> None:
+    """Trace-time check that positions and momenta have the same structure and shapes."""
+    q_struct = jtu.tree_structure(q)
+    p_struct = jtu.tree_structure(p)
+    if q_struct != p_struct:
+        raise ValueError(
+            f"`{name} = (q, p)` must have `q` and `p` of the same PyTree structure, as "
+            f"`p = dL/dv` has the structure of `v`; got q: {q_struct} and p: "
+            f"{p_struct}. Build `p` from `q`, e.g. `jax.tree.map(jnp.zeros_like, q)`."
+        )
+    for qi, pi in zip(jtu.tree_leaves(q), jtu.tree_leaves(p)):
+        if jnp.shape(qi) != jnp.shape(pi):
+            raise ValueError(
+                f"`{name} = (q, p)` must have matching shapes in `q` and `p`; got "
+                f"q leaf of shape {jnp.shape(qi)} and p leaf of shape "
+                f"{jnp.shape(pi)}."
+            )
+
+
+def split_state(y: PyTree, name: str = "y0") -> tuple[Q, P]:
+    """Unpack `y = (q, p)` with a trace-time error that says how to build it."""
+    if not (isinstance(y, tuple | list) and len(y) == 2):
+        raise ValueError(
+            f"`{name}` must be a pair `(q, p)` of positions and momenta, got "
+            f"{jtu.tree_structure(y)}. To start from a velocity `v0`, use "
+            "`(q0, diffrax_vi.momentum(lagrangian, t0, q0, v0, args))`."
+        )
+    q, p = y
+    check_state(q, p, name)
+    return q, p
+
+
+def tree_axpy(a, x: PyTree, y: PyTree) -> PyTree:
+    """`a * x + y`, leafwise."""
+    return jtu.tree_map(lambda xi, yi: a * xi + yi, x, y)
+
+
+def tree_cast(tree: PyTree, dtype: np.dtype) -> PyTree:
+    return jtu.tree_map(lambda x: jnp.asarray(x, dtype=dtype), tree)
+
+
+def unvmap_any(x: Bool[Array, "..."]) -> Bool[Array, ""]:
+    """True if `x` is true in any batch element: lets a branch stay a real branch under
+    `jax.vmap` instead of becoming a select that evaluates both sides."""
+    return eqxi.unvmap_any(x)
+

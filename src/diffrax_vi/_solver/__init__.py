@@ -1,0 +1,7 @@
+from .base import (
+    AbstractSymplecticSolver as AbstractSymplecticSolver,
+    AbstractVariationalSolver as AbstractVariationalSolver,
+)
+from .midpoint import MidpointVI as MidpointVI
+from .stormer_verlet import StormerVerlet as StormerVerlet
+from .trapezoidal import TrapezoidalVI as TrapezoidalVI

@@ -1,0 +1,167 @@
+from typing import ClassVar
+
+import diffrax as dfx
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+import optimistix as optx
+from equinox import AbstractVar
+from diffrax._term import WrapTerm  # diffeqsolve wraps every term in it (private).
+from jaxtyping import Array, Bool, PyTree
+
+from .._custom_types import Args, RealScalarLike, V
+from .._discrete import AbstractDiscreteLagrangian, discrete_hamiltonian_map
+from .._misc import all_finite, default_root_finder, split_state, state_dtype
+from .._term import LagrangianTerm, hamilton_vector_field
+
+
+class AbstractSymplecticSolver(dfx.AbstractSolver):
+    """Marker for solvers whose step map is symplectic on `y = (q, p)`.
+
+    Symplecticity, and with it bounded energy error over exponentially long times, holds
+    for fixed step sizes only: adaptive stepping (e.g. through `diffrax.HalfSolver`)
+    destroys it.
+    """
+
+
+class AbstractVariationalSolver(AbstractSymplecticSolver):
+    """Base class for variational integrators: solvers that read the Lagrangian of a
+    [`diffrax_vi.LagrangianTerm`][] and step its discrete Euler–Lagrange equations in
+    position–momentum form on `y = (q, p)`.
+
+    Dense output is cubic Hermite interpolation through the states and Hamilton's
+    vector field at both ends of each step.
+    """
+
+    term_structure: ClassVar = dfx.AbstractTerm
+    interpolation_cls: ClassVar = dfx.ThirdOrderHermitePolynomialInterpolation
+
+    root_finder: AbstractVar[optx.AbstractRootFinder | None]
+    root_find_max_steps: AbstractVar[int]
+
+
+def unwrap_term(terms: dfx.AbstractTerm, solver: str) -> tuple[LagrangianTerm, Array]:
+    """The user's `LagrangianTerm` inside diffrax's `WrapTerm`, and the time direction
+    (`+1`, or `-1` when integrating backwards)."""
+    direction = jnp.array(1)
+    if isinstance(terms, WrapTerm):
+        direction = jnp.asarray(terms.direction)
+        terms = terms.term
+    if not isinstance(terms, LagrangianTerm):
+        raise ValueError(
+            f"{solver} integrates a Lagrangian and needs a `diffrax_vi.LagrangianTerm`, "
+            f"but got {type(terms).__name__}. Wrap the Lagrangian: "
+            f"`diffeqsolve(diffrax_vi.LagrangianTerm(L), {solver}(), ...)` with "
+            "`y0 = (q0, p0)`. For Hamilton's equations given as a pair "
+            "`(ODETerm(dq/dt), ODETerm(dp/dt))`, use `diffrax_vi.StormerVerlet()`."
+        )
+    return terms, direction
+
+
+def step_times(
+    terms: dfx.AbstractTerm,
+    direction: Array,
+    t0: RealScalarLike,
+    t1: RealScalarLike,
+    dtype: np.dtype,
+) -> tuple[Array, Array, Array]:
+    """Physical start and end times and the signed step, in the state's dtype."""
+    h = jnp.asarray(terms.contr(t0, t1), dtype=dtype)
+    tp0 = jnp.asarray(direction * t0, dtype=dtype)
+    tp1 = jnp.asarray(direction * t1, dtype=dtype)
+    return tp0, tp1, h
+
+
+def step_result(
+    result: dfx.RESULTS, y0: PyTree, y1: PyTree, start_ok: Bool[Array, ""]
+) -> dfx.RESULTS:
+    """Fold the checks every variational step makes into one `RESULTS`.
+
+    A state that was finite and became NaN or inf is `RESULTS.nonfinite`; a finite
+    start at which the Legendre map could not be inverted is `RESULTS.singular`.
+    """
+    y0_ok = all_finite(y0)
+    result = dfx.RESULTS.where(y0_ok & ~start_ok, dfx.RESULTS.singular, result)
+    result = dfx.RESULTS.where(
+        (result == dfx.RESULTS.successful) & ~all_finite(y1),
+        dfx.RESULTS.nonfinite,
+        result,
+    )
+    return result
+
+
+def hermite_dense_info(
+    lagrangian,
+    tp0: Array,
+    tp1: Array,
+    h: Array,
+    y0: PyTree,
+    y1: PyTree,
+    args: Args,
+    v_guess: V,
+) -> dict[str, PyTree]:
+    """Dense output data: the states and `h` times Hamilton's vector field at both ends.
+
+    Only evaluated if the output is interpolated: otherwise it is dead code that XLA
+    removes.
+    """
+    f0, _ = hamilton_vector_field(lagrangian, tp0, *y0, args, v_guess=v_guess)
+    f1, _ = hamilton_vector_field(lagrangian, tp1, *y1, args, v_guess=v_guess)
+    scale = lambda f: jtu.tree_map(lambda x: h * x, f)
+    return dict(y0=y0, y1=y1, k0=scale(f0), k1=scale(f1))
+
+
+# The implicit position–momentum step shared by every variational solver built on a
+# discrete Lagrangian. Its state is the velocity of the last two steps, `(v_{k-1/2},
+# v_{k-3/2})`, from which the next step's Newton guess is extrapolated.
+_VIState = tuple[V, V]
+
+
+def implicit_vi_init(
+    terms: dfx.AbstractTerm, solver: str, t0: RealScalarLike, y0: PyTree, args: Args
+) -> _VIState:
+    term, direction = unwrap_term(terms, solver)
+    q0, p0 = split_state(y0)
+    dtype = state_dtype(y0)
+    tp0 = jnp.asarray(direction * t0, dtype=dtype)
+    (v0, _), result = hamilton_vector_field(term.lagrangian, tp0, q0, p0, args)
+    # A Legendre map that cannot be inverted at the start leaves a NaN guess, which the
+    # first step reports as `RESULTS.singular`.
+    ok = result == dfx.RESULTS.successful
+    v0 = jtu.tree_map(lambda v: jnp.where(ok, v, jnp.nan), v0)
+    return v0, v0
+
+
+def implicit_vi_step(
+    rule: AbstractDiscreteLagrangian,
+    root_finder: optx.AbstractRootFinder | None,
+    max_steps: int,
+    terms: dfx.AbstractTerm,
+    solver: str,
+    t0: RealScalarLike,
+    t1: RealScalarLike,
+    y0: PyTree,
+    args: Args,
+    solver_state: _VIState,
+    made_jump: Bool[Array, ""] | bool,
+):
+    term, direction = unwrap_term(terms, solver)
+    q0, p0 = split_state(y0)
+    dtype = state_dtype(y0)
+    tp0, tp1, h = step_times(terms, direction, t0, t1, dtype)
+    if root_finder is None:
+        root_finder = default_root_finder(dtype)
+    v_prev, v_prev2 = solver_state
+    # Second-order extrapolation of the step velocity; after a jump only the last
+    # velocity is trusted.
+    v_guess = jtu.tree_map(
+        lambda a, b: jnp.where(made_jump, a, 2 * a - b), v_prev, v_prev2
+    )
+    q1, p1, v, result = discrete_hamiltonian_map(
+        rule, term.lagrangian, tp0, h, q0, p0, args, v_guess, root_finder, max_steps
+    )
+    y1 = (q1, p1)
+    result = step_result(result, y0, y1, all_finite(v_prev))
+    dense_info = hermite_dense_info(term.lagrangian, tp0, tp1, h, y0, y1, args, v)
+    return y1, None, dense_info, (v, v_prev), result
+

@@ -1,0 +1,130 @@
+from collections.abc import Callable
+
+import diffrax as dfx
+import equinox as eqx
+import jax.tree_util as jtu
+from jaxtyping import ArrayLike, PyTree
+
+from ._custom_types import Args, RealScalarLike
+from ._lagrangian import (
+    AbstractLagrangian,
+    AbstractSeparableLagrangian,
+    as_lagrangian,
+    broadcast_mass,
+    generalised_force,
+    velocity,
+)
+from ._misc import all_finite, split_state
+
+
+def hamilton_vector_field(
+    lagrangian: AbstractLagrangian,
+    t: RealScalarLike,
+    q: PyTree,
+    p: PyTree,
+    args: Args,
+    *,
+    v_guess: PyTree | None = None,
+) -> tuple[tuple[PyTree, PyTree], dfx.RESULTS]:
+    r"""Hamilton's equations $(\dot q, \dot p) = (v, \partial L/\partial q)$ at
+    $(q, p)$, and whether the Legendre map could be inverted there."""
+    v, result = velocity(lagrangian, t, q, p, args, v_guess=v_guess)
+    return (v, generalised_force(lagrangian, t, q, v, args)), result
+
+
+class LagrangianTerm(dfx.AbstractTerm):
+    r"""A Lagrangian as a diffrax term on the phase-space state $y = (q, p)$.
+
+    Its vector field is Hamilton's equations,
+    $\dot q = v(q, p)$, $\dot p = \partial L / \partial q\,(t, q, v(q, p))$, with $v$ the
+    inverse Legendre map ([`diffrax_vi.velocity`][]). So every diffrax ODE solver
+    (`Tsit5`, `Dopri8`, `Kvaerno5`, ...) integrates the same term as the variational
+    solvers of this package, which instead read the Lagrangian itself.
+
+    !!! example
+
+        ```python
+        term = diffrax_vi.LagrangianTerm(lambda t, q, v, args: 0.5 * v**2 + jnp.cos(q))
+        y0 = (jnp.array(1.0), jnp.array(0.0))  # (q0, p0)
+        sol = diffrax.diffeqsolve(term, diffrax_vi.MidpointVI(), 0, 10, 0.01, y0)
+        sol = diffrax.diffeqsolve(term, diffrax.Tsit5(), 0, 10, 0.01, y0)
+        ```
+
+    !!! warning
+
+        A diffrax vector field cannot report a failed step. If the Legendre map cannot
+        be inverted (a degenerate Lagrangian, $\partial^2 L / \partial v^2$ singular),
+        `vf` raises an `EquinoxRuntimeError` that names the cause rather than return a
+        NaN that a fixed-step Runge–Kutta solve would report as a success.
+    """
+
+    lagrangian: AbstractLagrangian
+
+    def __init__(self, lagrangian: Callable[..., ArrayLike]):
+        """**Arguments:**
+
+        - `lagrangian`: an [`diffrax_vi.AbstractLagrangian`][], any `eqx.Module`
+            with `__call__(t, q, v, args) -> scalar`, or a plain callable of that form.
+        """
+        self.lagrangian = as_lagrangian(lagrangian)
+
+    def vf(self, t: RealScalarLike, y: PyTree, args: Args) -> PyTree:
+        q, p = split_state(y, "y")
+        f, result = hamilton_vector_field(self.lagrangian, t, q, p, args)
+        return eqx.error_if(
+            f,
+            (result != dfx.RESULTS.successful) & all_finite(y),
+            "The Legendre map p = dL/dv could not be inverted: d^2L/dv^2 is singular "
+            "(or Newton's method did not converge) at this state. The Lagrangian must "
+            "be regular: check that its kinetic energy is positive definite in every "
+            "velocity component.",
+        )
+
+    def contr(self, t0: RealScalarLike, t1: RealScalarLike, **kwargs) -> RealScalarLike:
+        return t1 - t0
+
+    def prod(self, vf: PyTree, control: RealScalarLike) -> PyTree:
+        return jtu.tree_map(lambda v: control * v, vf)
+
+
+class _SeparableVelocity(eqx.Module):
+    lagrangian: AbstractSeparableLagrangian
+
+    def __call__(self, t, p, args):
+        mass = broadcast_mass(self.lagrangian.mass, p)
+        return jtu.tree_map(lambda m, pi: pi / m, mass, p)
+
+
+class _SeparableForce(eqx.Module):
+    lagrangian: AbstractSeparableLagrangian
+
+    def __call__(self, t, q, args):
+        return generalised_force(self.lagrangian, t, q, None, args)
+
+
+def separable_terms(
+    lagrangian: AbstractSeparableLagrangian,
+) -> tuple[dfx.ODETerm, dfx.ODETerm]:
+    r"""Hamilton's equations of a separable Lagrangian as diffrax's partitioned pair
+    `(ODETerm(dq/dt = M^{-1} p), ODETerm(dp/dt = -dV/dq))`, the calling convention of
+    `diffrax.SemiImplicitEuler` and [`diffrax_vi.StormerVerlet`][].
+
+    **Arguments:**
+
+    - `lagrangian`: an [`diffrax_vi.AbstractSeparableLagrangian`][].
+
+    **Returns:**
+
+    A pair of `diffrax.ODETerm`s for `y = (q, p)`.
+    """
+    if not isinstance(lagrangian, AbstractSeparableLagrangian):
+        raise ValueError(
+            "Partitioned terms exist only for separable Lagrangians "
+            "L = 1/2 v^T M v - V(t, q); got "
+            f"{type(lagrangian).__name__}. Subclass "
+            "`diffrax_vi.AbstractSeparableLagrangian` or use "
+            "`diffrax_vi.SeparableLagrangian(potential, mass)`."
+        )
+    return dfx.ODETerm(_SeparableVelocity(lagrangian)), dfx.ODETerm(
+        _SeparableForce(lagrangian)
+    )
