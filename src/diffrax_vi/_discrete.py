@@ -1,4 +1,5 @@
-r"""Discrete Lagrangians, discrete Legendre maps and the discrete Euler–Lagrange residual.
+r"""Discrete Lagrangians, discrete Legendre maps and the discrete Euler–Lagrange
+residual.
 
 A discrete Lagrangian $L_d(q_0, q_1) \approx \int_{t_0}^{t_0 + h} L\,dt$ is written here
 through its *average* $\Lambda(q_0, v) = L_d(q_0, q_0 + h v) / h$ with

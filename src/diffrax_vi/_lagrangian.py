@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import lineax as lx
 import optimistix as optx
-from jaxtyping import ArrayLike, PyTree
+from jaxtyping import Array, ArrayLike, PyTree
 
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
 from ._misc import all_finite, default_root_finder, momentum_scale, state_dtype
@@ -56,7 +56,9 @@ class Lagrangian(AbstractLagrangian):
 
     fn: Callable[..., ArrayLike]
 
-    def __call__(self, t: RealScalarLike, q: Q, v: V, args: Args) -> Scalar:
+    def __call__(self, t: RealScalarLike, q: Q, v: V, args: Args) -> Array:
+        # Not annotated as a scalar: callers check that with an error that says how
+        # to fix it.
         return jnp.asarray(self.fn(t, q, v, args))
 
 
@@ -226,7 +228,9 @@ def velocity(
     - `lagrangian`: an [`diffrax_vi.AbstractLagrangian`][] or any callable
         `L(t, q, v, args)`.
     - `t`, `q`, `p`, `args`: where to invert it.
-    - `v_guess`: Newton's initial guess for a general Lagrangian. Defaults to `p`.
+    - `v_guess`: Newton's initial guess for a general Lagrangian. Defaults to zero,
+        from which the first Newton iterate is the exact answer for a Lagrangian
+        quadratic in `v`.
 
     **Returns:**
 
@@ -238,9 +242,7 @@ def velocity(
     if isinstance(lagrangian, AbstractSeparableLagrangian):
         mass = broadcast_mass(lagrangian.mass, p)
         v = jtu.tree_map(lambda m, pi: pi / m, mass, p)
-        zero_mass = jnp.any(
-            jnp.stack([jnp.any(m == 0) for m in jtu.tree_leaves(mass)])
-        )
+        zero_mass = jnp.any(jnp.stack([jnp.any(m == 0) for m in jtu.tree_leaves(mass)]))
         result = dfx.RESULTS.where(
             zero_mass, dfx.RESULTS.singular, dfx.RESULTS.successful
         )
@@ -267,7 +269,7 @@ def velocity(
         v = sol.value
         result = dfx.RESULTS.promote(sol.result)
     else:
-        guess = p if v_guess is None else v_guess
+        guess = jtu.tree_map(jnp.zeros_like, p) if v_guess is None else v_guess
         sol = optx.root_find(
             residual,
             default_root_finder(dtype),
@@ -311,4 +313,3 @@ def energy(
     pv = sum(jnp.sum(pi * vi) for pi, vi in zip(jtu.tree_leaves(p), jtu.tree_leaves(v)))
     value = pv - lagrangian_value(lagrangian, t, q, v, args)
     return jnp.where(result == dfx.RESULTS.successful, value, jnp.nan)
-

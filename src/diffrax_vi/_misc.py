@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, PyTree
+from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from ._custom_types import P, Q
 
@@ -57,7 +57,7 @@ def all_finite(tree: PyTree) -> Bool[Array, ""]:
 
 
 def check_state(q: Q, p: P, name: str = "y0") -> None:
-    """Trace-time check that positions and momenta have the same structure and shapes."""
+    """Trace-time check that positions and momenta have matching structure, shapes."""
     q_struct = jtu.tree_structure(q)
     p_struct = jtu.tree_structure(p)
     if q_struct != p_struct:
@@ -97,8 +97,7 @@ def tree_cast(tree: PyTree, dtype: np.dtype) -> PyTree:
     return jtu.tree_map(lambda x: jnp.asarray(x, dtype=dtype), tree)
 
 
-def unvmap_any(x: Bool[Array, "..."]) -> Bool[Array, ""]:
+def unvmap_any(x: bool | Bool[ArrayLike, "..."]) -> Bool[Array, ""]:
     """True if `x` is true in any batch element: lets a branch stay a real branch under
     `jax.vmap` instead of becoming a select that evaluates both sides."""
     return eqxi.unvmap_any(x)
-

@@ -36,8 +36,8 @@ class LagrangianTerm(dfx.AbstractTerm):
     r"""A Lagrangian as a diffrax term on the phase-space state $y = (q, p)$.
 
     Its vector field is Hamilton's equations,
-    $\dot q = v(q, p)$, $\dot p = \partial L / \partial q\,(t, q, v(q, p))$, with $v$ the
-    inverse Legendre map ([`diffrax_vi.velocity`][]). So every diffrax ODE solver
+    $\dot q = v(q, p)$, $\dot p = \partial L / \partial q\,(t, q, v(q, p))$, with $v$
+    the inverse Legendre map ([`diffrax_vi.velocity`][]). So every diffrax ODE solver
     (`Tsit5`, `Dopri8`, `Kvaerno5`, ...) integrates the same term as the variational
     solvers of this package, which instead read the Lagrangian itself.
 

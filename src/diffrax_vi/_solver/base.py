@@ -5,14 +5,14 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
-from equinox import AbstractVar
 from diffrax._term import WrapTerm  # diffeqsolve wraps every term in it (private).
-from jaxtyping import Array, Bool, PyTree
+from equinox import AbstractVar
+from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, RealScalarLike, V
 from .._discrete import AbstractDiscreteLagrangian, discrete_hamiltonian_map
 from .._misc import all_finite, default_root_finder, split_state, state_dtype
-from .._term import LagrangianTerm, hamilton_vector_field
+from .._term import hamilton_vector_field, LagrangianTerm
 
 
 class AbstractSymplecticSolver(dfx.AbstractSolver):
@@ -49,8 +49,9 @@ def unwrap_term(terms: dfx.AbstractTerm, solver: str) -> tuple[LagrangianTerm, A
         terms = terms.term
     if not isinstance(terms, LagrangianTerm):
         raise ValueError(
-            f"{solver} integrates a Lagrangian and needs a `diffrax_vi.LagrangianTerm`, "
-            f"but got {type(terms).__name__}. Wrap the Lagrangian: "
+            f"{solver} integrates a Lagrangian and needs a "
+            f"`diffrax_vi.LagrangianTerm`, but got {type(terms).__name__}. "
+            "Wrap the Lagrangian: "
             f"`diffeqsolve(diffrax_vi.LagrangianTerm(L), {solver}(), ...)` with "
             "`y0 = (q0, p0)`. For Hamilton's equations given as a pair "
             "`(ODETerm(dq/dt), ODETerm(dp/dt))`, use `diffrax_vi.StormerVerlet()`."
@@ -77,16 +78,14 @@ def step_result(
 ) -> dfx.RESULTS:
     """Fold the checks every variational step makes into one `RESULTS`.
 
-    A state that was finite and became NaN or inf is `RESULTS.nonfinite`; a finite
-    start at which the Legendre map could not be inverted is `RESULTS.singular`.
+    A NaN or inf state (at the start, or produced by a step that otherwise succeeded)
+    is `RESULTS.nonfinite`; a finite start at which the Legendre map could not be
+    inverted is `RESULTS.singular`.
     """
     y0_ok = all_finite(y0)
     result = dfx.RESULTS.where(y0_ok & ~start_ok, dfx.RESULTS.singular, result)
-    result = dfx.RESULTS.where(
-        (result == dfx.RESULTS.successful) & ~all_finite(y1),
-        dfx.RESULTS.nonfinite,
-        result,
-    )
+    became_nonfinite = (result == dfx.RESULTS.successful) & ~all_finite(y1)
+    result = dfx.RESULTS.where(~y0_ok | became_nonfinite, dfx.RESULTS.nonfinite, result)
     return result
 
 
@@ -143,7 +142,7 @@ def implicit_vi_step(
     y0: PyTree,
     args: Args,
     solver_state: _VIState,
-    made_jump: Bool[Array, ""] | bool,
+    made_jump: bool | Bool[ArrayLike, ""],
 ):
     term, direction = unwrap_term(terms, solver)
     q0, p0 = split_state(y0)
@@ -164,4 +163,3 @@ def implicit_vi_step(
     result = step_result(result, y0, y1, all_finite(v_prev))
     dense_info = hermite_dense_info(term.lagrangian, tp0, tp1, h, y0, y1, args, v)
     return y1, None, dense_info, (v, v_prev), result
-

@@ -1,6 +1,6 @@
 import diffrax as dfx
 import optimistix as optx
-from jaxtyping import Array, Bool, PyTree
+from jaxtyping import ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, RealScalarLike
 from .._discrete import MidpointRule
@@ -69,7 +69,7 @@ class MidpointVI(AbstractVariationalSolver):
         y0: tuple[PyTree, PyTree],
         args: Args,
         solver_state: PyTree,
-        made_jump: Bool[Array, ""] | bool,
+        made_jump: bool | Bool[ArrayLike, ""],
     ):
         return implicit_vi_step(
             MidpointRule(),

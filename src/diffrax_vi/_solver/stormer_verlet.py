@@ -3,7 +3,7 @@ from typing import ClassVar
 import diffrax as dfx
 import jax
 import jax.tree_util as jtu
-from jaxtyping import Array, Bool, PyTree
+from jaxtyping import ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, RealScalarLike
 from .._misc import all_finite, unvmap_any
@@ -82,8 +82,10 @@ class StormerVerlet(AbstractSymplecticSolver):
         y0: tuple[PyTree, PyTree],
         args: Args,
         solver_state: _SolverState,
-        made_jump: Bool[Array, ""] | bool,
-    ) -> tuple[tuple[PyTree, PyTree], None, dict[str, PyTree], _SolverState, dfx.RESULTS]:
+        made_jump: bool | Bool[ArrayLike, ""],
+    ) -> tuple[
+        tuple[PyTree, PyTree], None, dict[str, PyTree], _SolverState, dfx.RESULTS
+    ]:
         term_q, term_p = terms
         q0, p0 = y0
         # After a jump the cached force belongs to the state before the jump.

@@ -1,7 +1,7 @@
 import diffrax as dfx
 import optimistix as optx
 from diffrax._term import WrapTerm  # diffeqsolve wraps every term in it (private).
-from jaxtyping import Array, Bool, PyTree
+from jaxtyping import ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, RealScalarLike
 from .._discrete import TrapezoidalRule
@@ -85,13 +85,11 @@ class TrapezoidalVI(AbstractVariationalSolver):
         y0: tuple[PyTree, PyTree],
         args: Args,
         solver_state: PyTree,
-        made_jump: Bool[Array, ""] | bool,
+        made_jump: bool | Bool[ArrayLike, ""],
     ):
         pair = _partitioned(terms)
         if pair is not None:
-            return StormerVerlet().step(
-                pair, t0, t1, y0, args, solver_state, made_jump
-            )
+            return StormerVerlet().step(pair, t0, t1, y0, args, solver_state, made_jump)
         return implicit_vi_step(
             TrapezoidalRule(),
             self.root_finder,

@@ -1,0 +1,98 @@
+import diffrax as dfx
+import diffrax_vi as dvi
+import jax
+import jax.numpy as jnp
+import pytest
+
+from .helpers import DoublePendulum, Pendulum, stiffening, stiffening_velocity
+
+
+def _dp_mass_matrix(q):
+    c = jnp.cos(q[0] - q[1])
+    return jnp.array([[2.0, c], [c, 1.0]])
+
+
+def test_momentum_separable_pytree_mass():
+    lagrangian = dvi.SeparableLagrangian(
+        lambda t, q, args: jnp.sum(q["a"] ** 2) + jnp.sum(q["b"]),
+        mass={"a": jnp.array([[2.0], [3.0]]), "b": 5.0},
+    )
+    q = {"a": jnp.ones((2, 3)), "b": jnp.ones(4)}
+    v = {"a": jnp.arange(6.0).reshape(2, 3), "b": jnp.arange(4.0)}
+    p = dvi.momentum(lagrangian, 0.0, q, v)
+    assert jnp.array_equal(p["a"], jnp.array([[2.0], [3.0]]) * v["a"])
+    assert jnp.array_equal(p["b"], 5.0 * v["b"])
+    v_back, result = dvi.velocity(lagrangian, 0.0, q, p)
+    assert result == dfx.RESULTS.successful
+    assert jnp.allclose(v_back["a"], v["a"]) and jnp.allclose(v_back["b"], v["b"])
+
+
+def test_velocity_quadratic_is_exact_single_solve():
+    # The double pendulum's momentum is M(q) v with M known in closed form.
+    q = jnp.array([0.3, -1.1])
+    v = jnp.array([0.7, 0.2])
+    p = dvi.momentum(DoublePendulum(), 0.0, q, v)
+    assert jnp.allclose(p, _dp_mass_matrix(q) @ v, rtol=1e-14)
+    v_back, result = dvi.velocity(DoublePendulum(), 0.0, q, p)
+    assert result == dfx.RESULTS.successful
+    assert jnp.allclose(v_back, v, rtol=1e-14)
+
+
+def test_velocity_general_newton():
+    q = jnp.array([0.1, 0.2])
+    p = jnp.array([1.5, -0.7])
+    v, result = dvi.velocity(stiffening, 0.0, q, p)
+    assert result == dfx.RESULTS.successful
+    assert jnp.allclose(v, stiffening_velocity(p), rtol=1e-13, atol=1e-15)
+    assert jnp.allclose(dvi.momentum(stiffening, 0.0, q, v), p, rtol=1e-14)
+
+
+def test_energy_matches_closed_forms():
+    q, p = jnp.array(0.4), jnp.array(0.9)
+    assert jnp.allclose(
+        dvi.energy(Pendulum(g=2.0), 0.0, q, p), 0.5 * p**2 - 2 * jnp.cos(q)
+    )
+    q2, p2 = jnp.array([0.1, 0.2]), jnp.array([1.5, -0.7])
+    v2 = jnp.sum(stiffening_velocity(p2) ** 2)
+    expected = 0.5 * v2 + 0.25 * v2**2 + 0.5 * jnp.sum(q2**2) + 0.1 * q2[0] ** 2 * q2[1]
+    assert jnp.allclose(dvi.energy(stiffening, 0.0, q2, p2), expected, rtol=1e-13)
+    qd, vd = jnp.array([0.3, -1.1]), jnp.array([0.7, 0.2])
+    pd = _dp_mass_matrix(qd) @ vd
+    expected = 0.5 * vd @ _dp_mass_matrix(qd) @ vd - 2 * jnp.cos(qd[0]) - jnp.cos(qd[1])
+    assert jnp.allclose(dvi.energy(DoublePendulum(), 0.0, qd, pd), expected, rtol=1e-13)
+
+
+def test_user_equinox_module_as_lagrangian():
+    class Spring(dvi.AbstractLagrangian):
+        k: jax.Array
+
+        def __call__(self, t, q, v, args):
+            return 0.5 * v**2 - 0.5 * self.k * q**2
+
+    term = dvi.LagrangianTerm(Spring(jnp.array(4.0)))
+    dq, dp = term.vf(0.0, (jnp.array(1.0), jnp.array(2.0)), None)
+    assert jnp.allclose(dq, 2.0) and jnp.allclose(dp, -4.0)
+
+
+def test_degenerate_lagrangian_is_singular():
+    degenerate = lambda t, q, v, args: 0.5 * jnp.sum(v) ** 2 - jnp.sum(q**4)
+    q, p = jnp.array([0.1, 0.2]), jnp.array([1.0, 1.0])
+    _, result = dvi.velocity(degenerate, 0.0, q, p)
+    assert result != dfx.RESULTS.successful
+    zero_mass = dvi.SeparableLagrangian(lambda t, q, args: jnp.sum(q**2), mass=0.0)
+    _, result = dvi.velocity(zero_mass, 0.0, q, p)
+    assert result == dfx.RESULTS.singular
+
+
+def test_non_scalar_lagrangian_raises():
+    vector_valued = lambda t, q, v, args: 0.5 * v**2 - 0.5 * q**2
+    with pytest.raises(ValueError, match="must return a scalar"):
+        dvi.momentum(vector_valued, 0.0, jnp.ones(3), jnp.ones(3))
+
+
+def test_bad_mass_structure_raises():
+    lagrangian = dvi.SeparableLagrangian(lambda t, q, args: 0.0, mass=(1.0, 2.0, 3.0))
+    with pytest.raises(ValueError, match="mass"):
+        dvi.momentum(
+            lagrangian, 0.0, (jnp.ones(2), jnp.ones(2)), (jnp.ones(2), jnp.ones(2))
+        )
