@@ -37,7 +37,7 @@ def default_root_finder(dtype: np.dtype) -> optx.AbstractRootFinder:
     """Newton's method with tolerances that suit `dtype`.
 
     It stops when both the update and the residual are small (Cauchy termination).
-    The residuals of this package are momenta divided by [`momentum_scale`][], so the
+    The residuals of this package are momenta divided by `momentum_scale`, so the
     absolute tolerance on them is relative to the size of the momentum.
     """
     tol = default_tolerance(dtype)

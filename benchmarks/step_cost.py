@@ -1,0 +1,126 @@
+"""Per-step cost of our solvers inside `diffrax.diffeqsolve`, as ratios from one run.
+
+- StormerVerlet in diffeqsolve (saving only t1) over a bare `jax.lax.scan` of the same
+  kick-drift-kick update (target <= 1.2x);
+- StormerVerlet over `diffrax.SemiImplicitEuler` on the same terms (target <= 1.2x);
+- MidpointVI over `diffrax.Tsit5` on the same `LagrangianTerm` at the same step.
+
+On two systems: Kepler (2 degrees of freedom, where the loop's fixed overhead shows) and
+a Fermi-Pasta-Ulam-like chain of 256 particles with quartic springs.
+
+Run: `python benchmarks/step_cost.py [--repeats 5]`.
+"""
+
+import argparse
+import importlib.metadata
+import time
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+
+jax.config.update("jax_enable_x64", True)
+
+import diffrax_vi as dvi  # noqa: E402
+
+
+class Chain(dvi.AbstractSeparableLagrangian):
+    """Fixed-end chain with springs V(r) = r^2/2 + r^4/4."""
+
+    mass: float = eqx.field(static=True, default=1.0)
+
+    def potential(self, t, q, args):
+        r = jnp.diff(jnp.concatenate([jnp.zeros(1), q, jnp.zeros(1)]))
+        return jnp.sum(0.5 * r**2 + 0.25 * r**4)
+
+
+class Kepler(dvi.AbstractSeparableLagrangian):
+    mass: float = eqx.field(static=True, default=1.0)
+
+    def potential(self, t, q, args):
+        return -1 / jnp.sqrt(jnp.sum(q**2))
+
+
+def best_time(fn, *args, repeats):
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def run(name, lagrangian, y0, h, n, repeats):
+    t1 = h * n
+    terms_pair = dvi.separable_terms(lagrangian)
+    term = dvi.LagrangianTerm(lagrangian)
+
+    def solve(terms, solver):
+        @jax.jit
+        def f(y0):
+            sol = dfx.diffeqsolve(
+                terms, solver, 0.0, t1, h, y0, saveat=dfx.SaveAt(t1=True), max_steps=n
+            )
+            return sol.ys
+
+        return f
+
+    force = lambda q: dvi.separable_terms(lagrangian)[1].vector_field(0.0, q, None)
+
+    @jax.jit
+    def bare_scan(y0):
+        def update(carry, _):
+            q, p, g = carry
+            p_half = p + 0.5 * h * g
+            q = q + h * p_half / lagrangian.mass
+            g = force(q)
+            return (q, p_half + 0.5 * h * g, g), None
+
+        (q, p, _), _ = jax.lax.scan(update, (*y0, force(y0[0])), None, length=n)
+        return q, p
+
+    # The bare scan must compute what the solver computes.
+    sv_final = jax.tree.map(lambda x: x[-1], solve(terms_pair, dvi.StormerVerlet())(y0))
+    scan_final = bare_scan(y0)
+    assert max(
+        float(jnp.max(jnp.abs(a - b))) for a, b in zip(sv_final, scan_final)
+    ) < 1e-9 * (1 + float(jnp.max(jnp.abs(scan_final[0])))), "bare scan differs"
+
+    t_sv = best_time(solve(terms_pair, dvi.StormerVerlet()), y0, repeats=repeats)
+    t_scan = best_time(bare_scan, y0, repeats=repeats)
+    t_sie = best_time(solve(terms_pair, dfx.SemiImplicitEuler()), y0, repeats=repeats)
+    t_mid = best_time(solve(term, dvi.MidpointVI()), y0, repeats=repeats)
+    t_tsit = best_time(solve(term, dfx.Tsit5()), y0, repeats=repeats)
+    us = lambda t: 1e6 * t / n
+    print(f"\n{name}: {n} steps, per-step wall time (best of {repeats})")
+    print(f"  bare lax.scan (kick-drift-kick)  {us(t_scan):8.3f} us")
+    print(f"  StormerVerlet in diffeqsolve     {us(t_sv):8.3f} us")
+    print(f"  SemiImplicitEuler in diffeqsolve {us(t_sie):8.3f} us")
+    print(f"  MidpointVI in diffeqsolve        {us(t_mid):8.3f} us")
+    print(f"  Tsit5 in diffeqsolve             {us(t_tsit):8.3f} us")
+    print(f"  StormerVerlet / bare scan        {t_sv / t_scan:8.2f}x  (target <= 1.2)")
+    print(f"  StormerVerlet / SemiImplicitEuler{t_sv / t_sie:8.2f}x  (target <= 1.2)")
+    print(f"  MidpointVI / Tsit5               {t_mid / t_tsit:8.2f}x")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    print(
+        f"jax {jax.__version__}, diffrax {importlib.metadata.version('diffrax')}, "
+        f"device {jax.devices()[0]}"
+    )
+    e = 0.6
+    kepler_y0 = (jnp.array([1 - e, 0.0]), jnp.array([0.0, ((1 + e) / (1 - e)) ** 0.5]))
+    run("Kepler (2 DOF)", Kepler(), kepler_y0, 2 * jnp.pi / 200, 100_000, args.repeats)
+    n = 256
+    chain_y0 = (jnp.sin(jnp.linspace(0, jnp.pi, n)), jnp.zeros(n))
+    run("Chain (256 DOF)", Chain(), chain_y0, 0.02, 20_000, args.repeats)
+
+
+if __name__ == "__main__":
+    main()
