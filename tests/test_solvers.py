@@ -467,3 +467,21 @@ def test_singular_hessian():
             _solve(degenerate, solver, y0)
     with pytest.raises(eqx.EquinoxRuntimeError, match="singular"):
         _solve(degenerate, dfx.Tsit5(), y0)
+
+
+def test_adaptive_through_half_solver():
+    # Works, but is no longer symplectic: documented in docs/errors.md.
+    y0 = (jnp.array(1.2), jnp.array(0.0))
+    sol = dfx.diffeqsolve(
+        dvi.LagrangianTerm(Pendulum()),
+        dfx.HalfSolver(dvi.MidpointVI()),
+        0.0,
+        10.0,
+        0.1,
+        y0,
+        stepsize_controller=dfx.PIDController(rtol=1e-8, atol=1e-8),
+        max_steps=10_000,
+    )
+    assert sol.result == dfx.RESULTS.successful
+    final = (sol.ys[0][-1], sol.ys[1][-1])
+    assert max_abs_diff(final, reference(Pendulum(), y0, 10.0)) < 1e-5
