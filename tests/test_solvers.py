@@ -485,3 +485,12 @@ def test_adaptive_through_half_solver():
     assert sol.result == dfx.RESULTS.successful
     final = (sol.ys[0][-1], sol.ys[1][-1])
     assert max_abs_diff(final, reference(Pendulum(), y0, 10.0)) < 1e-5
+
+
+@pytest.mark.parametrize("name,solver", SECOND_ORDER)
+def test_non_finite_position_of_a_free_particle(name, solver):
+    # The force does not depend on q, so a NaN position never reaches the momentum
+    # through a kick: the start itself must be checked.
+    free = dvi.SeparableLagrangian(lambda t, q, args: 0.0 * jnp.sum(q))
+    sol = _solve(free, solver, (jnp.array([jnp.nan, 0.0]), jnp.ones(2)), throw=False)
+    assert sol.result == dfx.RESULTS.nonfinite

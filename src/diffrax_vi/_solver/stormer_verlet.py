@@ -2,8 +2,9 @@ from typing import ClassVar
 
 import diffrax as dfx
 import jax
+import jax.numpy as jnp
 import jax.tree_util as jtu
-from jaxtyping import ArrayLike, Bool, PyTree
+from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, RealScalarLike
 from .._misc import all_finite, unvmap_any
@@ -11,6 +12,19 @@ from .base import AbstractSymplecticSolver
 
 
 _SolverState = PyTree  # dp/dt at the start of the step, reused from the last one.
+
+
+def _start_force(term_p, t0, y0, args):
+    """`dp/dt` at the start, poisoned with NaN if the state is not finite: the first
+    kick then carries the NaN into the momentum, which every step checks."""
+    q0, _ = y0
+    ok = all_finite(y0)
+    return jtu.tree_map(lambda g: jnp.where(ok, g, jnp.nan), term_p.vf(t0, q0, args))
+
+
+def _momentum_finite(p) -> Bool[Array, ""]:
+    # One sum per leaf, the cheapest reduction: NaN and inf survive a sum.
+    return jnp.isfinite(sum(jnp.sum(x) for x in jtu.tree_leaves(p)))
 
 
 def _half(control):
@@ -38,7 +52,13 @@ class StormerVerlet(AbstractSymplecticSolver):
     p_1 = p_{1/2} + \tfrac h2 g(t_1, q_1).$$
 
     The kick $g(t_1, q_1)$ that ends a step starts the next one, so it is evaluated
-    once. For $f = M^{-1}p$, $g = -\nabla V$ this is the variational integrator of the
+    once. A NaN or inf anywhere in the initial state, or arising in a step, ends the
+    solve with `RESULTS.nonfinite`: each step checks the momentum, into which a
+    non-finite position passes through the next kick. (The one case this misses is a
+    position that turns non-finite while $g$ does not depend on it, which needs
+    $f$ to return NaN or inf for a finite momentum.)
+
+    For $f = M^{-1}p$, $g = -\nabla V$ this is the variational integrator of the
     trapezoidal discrete Lagrangian ([`diffrax_vi.TrapezoidalVI`][]).
 
     ??? cite "Reference"
@@ -71,8 +91,7 @@ class StormerVerlet(AbstractSymplecticSolver):
         args: Args,
     ) -> _SolverState:
         _, term_p = terms
-        q0, _ = y0
-        return term_p.vf(t0, q0, args)
+        return _start_force(term_p, t0, y0, args)
 
     def step(
         self,
@@ -91,7 +110,7 @@ class StormerVerlet(AbstractSymplecticSolver):
         # After a jump the cached force belongs to the state before the jump.
         g0 = jax.lax.cond(
             unvmap_any(made_jump),
-            lambda: term_p.vf(t0, q0, args),
+            lambda: _start_force(term_p, t0, y0, args),
             lambda: solver_state,
         )
         control_q = term_q.contr(t0, t1)
@@ -104,7 +123,7 @@ class StormerVerlet(AbstractSymplecticSolver):
         y1 = (q1, p1)
 
         result = dfx.RESULTS.where(
-            all_finite(y1), dfx.RESULTS.successful, dfx.RESULTS.nonfinite
+            _momentum_finite(p1), dfx.RESULTS.successful, dfx.RESULTS.nonfinite
         )
         dense_info = dict(
             y0=y0,
