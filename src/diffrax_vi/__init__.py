@@ -1,7 +1,15 @@
 import importlib.metadata
 
+from ._diagnostics import (
+    del_residuals as del_residuals,
+    presymplectic_form as presymplectic_form,
+    tangent_discrete_lagrangian as tangent_discrete_lagrangian,
+    tangent_symplectic_form as tangent_symplectic_form,
+)
 from ._discrete import (
     AbstractDiscreteLagrangian as AbstractDiscreteLagrangian,
+    del_residual as del_residual,
+    discrete_lagrangian as discrete_lagrangian,
     MidpointRule as MidpointRule,
     TrapezoidalRule as TrapezoidalRule,
 )
@@ -13,11 +21,13 @@ from ._lagrangian import (
     Lagrangian as Lagrangian,
     momentum as momentum,
     SeparableLagrangian as SeparableLagrangian,
+    TangentLift as TangentLift,
     velocity as velocity,
 )
 from ._solver import (
     AbstractSymplecticSolver as AbstractSymplecticSolver,
     AbstractVariationalSolver as AbstractVariationalSolver,
+    LinearizedVI as LinearizedVI,
     MidpointVI as MidpointVI,
     StormerVerlet as StormerVerlet,
     TrapezoidalVI as TrapezoidalVI,

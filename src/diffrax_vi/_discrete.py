@@ -110,7 +110,7 @@ def del_residual(
     return jtu.tree_map(lambda x, y: x + y, a, b)
 
 
-def _average_grads(rule, lagrangian, t0, h, q0, v, args) -> tuple[P, P]:
+def average_grads(rule, lagrangian, t0, h, q0, v, args) -> tuple[P, P]:
     return jax.grad(rule.average, argnums=(3, 4))(lagrangian, t0, h, q0, v, args)
 
 
@@ -137,14 +137,14 @@ def discrete_hamiltonian_map(
     scale = momentum_scale(p0)
 
     def residual(v, _):
-        dq, dv = _average_grads(rule, lagrangian, t0, h, q0, v, args)
+        dq, dv = average_grads(rule, lagrangian, t0, h, q0, v, args)
         return jtu.tree_map(lambda p, a, b: (p + h * a - b) / scale, p0, dq, dv)
 
     sol = optx.root_find(
         residual, root_finder, v_guess, max_steps=max_steps, throw=False
     )
     v = sol.value
-    dq, _ = _average_grads(rule, lagrangian, t0, h, q0, v, args)
+    dq, _ = average_grads(rule, lagrangian, t0, h, q0, v, args)
     q1 = tree_axpy(h, v, q0)
     p1 = tree_axpy(h, dq, p0)
     return q1, p1, v, dfx.RESULTS.promote(sol.result)

@@ -125,6 +125,50 @@ class SeparableLagrangian(AbstractSeparableLagrangian):
         return jnp.asarray(self.potential_fn(t, q, args))
 
 
+class TangentLift(AbstractLagrangian):
+    r"""The tangent lift (the seed's continuous linearization (4.20)) of a Lagrangian,
+
+    $$L^{(2)}(q, u, v, w) = \frac{\partial L}{\partial q}(q, v)\cdot u
+    + \frac{\partial L}{\partial v}(q, v)\cdot w,$$
+
+    the derivative of $L$ along $(u, w)$: a Lagrangian on the doubled configuration
+    `(q, u)` with velocity `(v, w)` and momentum `(p_q, p_u)`, where
+    $p_u = \partial L / \partial v$ is the momentum of $L$.
+
+    Its Euler–Lagrange equations are those of $L$ (in $u$) together with their
+    variational equation (in $q$); with $u = \dot q$ the latter is the time derivative
+    of the Euler–Lagrange equations of $L$ (the seed's Lemma 3). Any variational solver
+    applied to `LagrangianTerm(TangentLift(L))` is the seed's algorithm on
+    $TQ \times TQ$ (4.61–4.62), and equals the tangent map of the solver's flow of $L$.
+
+    **Arguments:**
+
+    - `lagrangian`: the Lagrangian $L$ to lift: any
+        [`diffrax_vi.AbstractLagrangian`][] or callable `L(t, q, v, args)`.
+
+    The state of the lifted system is `y = ((q, u), (p_q, p_u))`.
+    """
+
+    lagrangian: AbstractLagrangian
+
+    def __init__(self, lagrangian: Callable[..., ArrayLike]):
+        self.lagrangian = as_lagrangian(lagrangian)
+
+    def __call__(self, t: RealScalarLike, q: Q, v: V, args: Args) -> Scalar:
+        if not (isinstance(q, tuple) and len(q) == 2):
+            raise ValueError(
+                "TangentLift(L) acts on the doubled configuration `(q, u)` and "
+                "velocity `(v, w)`: its state is `y = ((q, u), (p_q, p_u))`."
+            )
+        (q, u), (v, w) = q, v
+        _, tangent = jax.jvp(
+            lambda _q, _v: lagrangian_value(self.lagrangian, t, _q, _v, args),
+            (q, v),
+            (u, w),
+        )
+        return tangent
+
+
 def broadcast_mass(mass: PyTree[ArrayLike], q: Q) -> Q:
     """The mass as a PyTree with the structure of `q` (a scalar mass is shared)."""
     if jtu.tree_structure(mass) == jtu.tree_structure(q):
