@@ -1,4 +1,3 @@
-
 import diffrax as dfx
 import equinox as eqx
 import jax
@@ -120,9 +119,7 @@ class LinearizedVI(AbstractVariationalSolver):
     def _n_past(self) -> int:
         return 2 if self.velocity == "forward" else 3
 
-    def _history(
-        self, lagrangian: AbstractLagrangian, tp0, h, y0, args
-    ) -> _History:
+    def _history(self, lagrangian: AbstractLagrangian, tp0, h, y0, args) -> _History:
         """The past, from backward steps of the variational integrator of the same
         discrete Lagrangian: consecutive triples then satisfy its DEL equations."""
         q, p = y0
