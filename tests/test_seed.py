@@ -363,3 +363,31 @@ def test_linearized_backward_vmap_grad():
 def test_linearized_bad_velocity():
     with pytest.raises(ValueError, match="forward"):
         dvi.LinearizedVI(velocity="backward")
+
+
+def test_linearized_with_trapezoidal_discrete_lagrangian():
+    # The discrete Lagrangian is a parameter: the history lies on the trapezoidal S,
+    # and the method is second order on the oscillator.
+    rule = dvi.TrapezoidalRule()
+    solver = dvi.LinearizedVI(discrete_lagrangian=rule)
+    osc = dvi.SeparableLagrangian(lambda t, q, a: 0.5 * q**2)
+    term = dvi.LagrangianTerm(osc)
+    y0 = (jnp.array(1.0), jnp.array(0.0))
+    qs, _ = solver.init(term, 0.0, 0.05, y0, None)
+    residual = dvi.del_residual(
+        rule, osc, (-0.1, -0.05, 0.0), (qs[1], qs[0], y0[0]), None
+    )
+    assert abs(float(residual)) < 1e-13
+    midpoint_residual = dvi.del_residual(
+        dvi.MidpointRule(), osc, (-0.1, -0.05, 0.0), (qs[1], qs[0], y0[0]), None
+    )
+    assert abs(float(midpoint_residual)) > 1e-6  # a different S
+    ns = [100, 200, 400, 800]
+    errors = [
+        abs(
+            float(dfx.diffeqsolve(term, solver, 0.0, 5.0, 5.0 / n, y0).ys[0][-1])
+            - np.cos(5.0)
+        )
+        for n in ns
+    ]
+    assert abs(fitted_order([5.0 / n for n in ns], errors) - 2) < 0.3, errors
