@@ -58,7 +58,8 @@ def oscillator_positions(solver, h, n, thesis_start):
         # (5.27) from q0, q1, q2 of the analytic solution.
         t0, head = 2 * h, [exact(0.0), exact(h)]
         y0 = (exact(2 * h), d2_ld(OSCILLATOR, h, 2 * h, exact(h), exact(2 * h)))
-        state = ((exact(h), exact(0.0)), (jnp.asarray(h), jnp.asarray(h)))
+        hs = (jnp.asarray(h), jnp.asarray(h))
+        state = ((exact(h), exact(0.0)), hs, jnp.zeros(()))
     steps = n - len(head)
     sol = dfx.diffeqsolve(
         term,

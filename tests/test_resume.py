@@ -1,10 +1,9 @@
 """Resuming from a saved solver state, and restarting after a jump."""
 
 import diffrax as dfx
+import diffrax_vi as dvi
 import jax.numpy as jnp
 import pytest
-
-import diffrax_vi as dvi
 
 from .helpers import Duffing, max_abs_diff
 

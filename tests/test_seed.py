@@ -195,7 +195,7 @@ def _triple_map(lagrangian, h):
         p2 = jax.grad(
             lambda b: dvi.discrete_lagrangian(rule, lagrangian, h, 2 * h, q1, b, None)
         )(q2)
-        state = ((q1, q0), (jnp.asarray(h), jnp.asarray(h)))
+        state = ((q1, q0), (jnp.asarray(h), jnp.asarray(h)), jnp.zeros_like(q0))
         (q3, _), *_ = solver.step(term, 2 * h, 3 * h, (q2, p2), None, state, False)
         return q1, q2, q3
 
@@ -274,7 +274,7 @@ def test_linearized_history_lies_on_S(velocity, name, lagrangian, n, getkey):
     q0, v0, _ = _random_triple(getkey(), n)
     y0 = _state(lagrangian, q0, v0)
     h = 0.05
-    qs, hs = dvi.LinearizedVI(velocity=velocity).init(
+    qs, _, _ = dvi.LinearizedVI(velocity=velocity).init(
         dvi.LagrangianTerm(lagrangian), 0.0, h, y0, None
     )
     points = (q0,) + qs
@@ -373,7 +373,7 @@ def test_linearized_with_trapezoidal_discrete_lagrangian():
     osc = dvi.SeparableLagrangian(lambda t, q, a: 0.5 * q**2)
     term = dvi.LagrangianTerm(osc)
     y0 = (jnp.array(1.0), jnp.array(0.0))
-    qs, _ = solver.init(term, 0.0, 0.05, y0, None)
+    qs, _, _ = solver.init(term, 0.0, 0.05, y0, None)
     residual = dvi.del_residual(
         rule, osc, (-0.1, -0.05, 0.0), (qs[1], qs[0], y0[0]), None
     )

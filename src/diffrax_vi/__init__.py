@@ -25,12 +25,18 @@ from ._lagrangian import (
     velocity as velocity,
 )
 from ._solver import (
+    AbstractSymmetricSolver as AbstractSymmetricSolver,
     AbstractSymplecticSolver as AbstractSymplecticSolver,
     AbstractVariationalSolver as AbstractVariationalSolver,
+    AbstractVPRK as AbstractVPRK,
+    Composition as Composition,
+    GaussVPRK as GaussVPRK,
     LinearizedVI as LinearizedVI,
+    LobattoVPRK as LobattoVPRK,
     MidpointVI as MidpointVI,
     StormerVerlet as StormerVerlet,
     TrapezoidalVI as TrapezoidalVI,
+    VPRKTableau as VPRKTableau,
 )
 from ._term import LagrangianTerm as LagrangianTerm, separable_terms as separable_terms
 

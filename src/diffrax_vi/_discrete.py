@@ -131,7 +131,8 @@ def discrete_hamiltonian_map(
 
     **Returns:**
 
-    `(q1, p1, v, result)` with `v = (q1 - q0)/h` the step's velocity.
+    `(q1 - q0, p1 - p0, v, result)`: the increments, for the caller to add (with
+    compensated summation), and `v = (q1 - q0)/h` the step's velocity.
     """
 
     scale = momentum_scale(p0)
@@ -144,7 +145,7 @@ def discrete_hamiltonian_map(
         residual, root_finder, v_guess, max_steps=max_steps, throw=False
     )
     v = sol.value
-    dq, _ = average_grads(rule, lagrangian, t0, h, q0, v, args)
-    q1 = tree_axpy(h, v, q0)
-    p1 = tree_axpy(h, dq, p0)
-    return q1, p1, v, dfx.RESULTS.promote(sol.result)
+    dl_dq, _ = average_grads(rule, lagrangian, t0, h, q0, v, args)
+    dq = jtu.tree_map(lambda x: h * x, v)
+    dp = jtu.tree_map(lambda x: h * x, dl_dq)
+    return dq, dp, v, dfx.RESULTS.promote(sol.result)

@@ -1,8 +1,16 @@
 from .base import (
+    AbstractSymmetricSolver as AbstractSymmetricSolver,
     AbstractSymplecticSolver as AbstractSymplecticSolver,
     AbstractVariationalSolver as AbstractVariationalSolver,
 )
+from .composition import Composition as Composition
 from .linearized import LinearizedVI as LinearizedVI
 from .midpoint import MidpointVI as MidpointVI
 from .stormer_verlet import StormerVerlet as StormerVerlet
 from .trapezoidal import TrapezoidalVI as TrapezoidalVI
+from .vprk import (
+    AbstractVPRK as AbstractVPRK,
+    GaussVPRK as GaussVPRK,
+    LobattoVPRK as LobattoVPRK,
+    VPRKTableau as VPRKTableau,
+)

@@ -24,6 +24,12 @@ class AbstractSymplecticSolver(dfx.AbstractSolver):
     """
 
 
+class AbstractSymmetricSolver(dfx.AbstractSolver):
+    """Marker for solvers whose step is symmetric (time-reversible): a step of `h`
+    followed by a step of `-h` returns to the start. Only these can be raised to higher
+    order by [`diffrax_vi.Composition`][]."""
+
+
 class AbstractVariationalSolver(AbstractSymplecticSolver):
     """Base class for variational integrators: solvers that read the Lagrangian of a
     [`diffrax_vi.LagrangianTerm`][] and step its discrete Euler–Lagrange equations in
@@ -38,6 +44,32 @@ class AbstractVariationalSolver(AbstractSymplecticSolver):
 
     root_finder: AbstractVar[optx.AbstractRootFinder | None]
     root_find_max_steps: AbstractVar[int]
+    compensated: AbstractVar[bool]
+
+
+def compensated_add(
+    y0: PyTree,
+    increment: PyTree,
+    compensation: PyTree,
+    enabled: bool,
+    made_jump: Bool[ArrayLike, ""] | bool,
+) -> tuple[PyTree, PyTree]:
+    """`y0 + increment` with compensated (Kahan) summation.
+
+    `compensation` carries the rounding error of the previous additions, fed back into
+    the next increment. With `enabled=False` it is a plain sum and `compensation` is
+    passed through unchanged.
+    """
+    if not enabled:
+        return jtu.tree_map(lambda a, b: a + b, y0, increment), compensation
+    # After a jump the carried error belongs to the state before it.
+    compensation = jtu.tree_map(
+        lambda c: jnp.where(made_jump, jnp.zeros_like(c), c), compensation
+    )
+    corrected = jtu.tree_map(lambda d, c: d - c, increment, compensation)
+    y1 = jtu.tree_map(lambda a, d: a + d, y0, corrected)
+    compensation = jtu.tree_map(lambda a, b, d: (b - a) - d, y0, y1, corrected)
+    return y1, compensation
 
 
 def unwrap_term(terms: dfx.AbstractTerm, solver: str) -> tuple[LagrangianTerm, Array]:
@@ -112,8 +144,9 @@ def hermite_dense_info(
 
 # The implicit position–momentum step shared by every variational solver built on a
 # discrete Lagrangian. Its state is the velocity of the last two steps, `(v_{k-1/2},
-# v_{k-3/2})`, from which the next step's Newton guess is extrapolated.
-_VIState = tuple[V, V]
+# v_{k-3/2})`, from which the next step's Newton guess is extrapolated, and the
+# compensation of the summation.
+_VIState = tuple[tuple[V, V], PyTree]
 
 
 def implicit_vi_init(
@@ -128,13 +161,14 @@ def implicit_vi_init(
     # first step reports as `RESULTS.singular`.
     ok = result == dfx.RESULTS.successful
     v0 = jtu.tree_map(lambda v: jnp.where(ok, v, jnp.nan), v0)
-    return v0, v0
+    return (v0, v0), jtu.tree_map(jnp.zeros_like, y0)
 
 
 def implicit_vi_step(
     rule: AbstractDiscreteLagrangian,
     root_finder: optx.AbstractRootFinder | None,
     max_steps: int,
+    compensated: bool,
     terms: dfx.AbstractTerm,
     solver: str,
     t0: RealScalarLike,
@@ -150,16 +184,18 @@ def implicit_vi_step(
     tp0, tp1, h = step_times(terms, direction, t0, t1, dtype)
     if root_finder is None:
         root_finder = default_root_finder(dtype)
-    v_prev, v_prev2 = solver_state
+    (v_prev, v_prev2), compensation = solver_state
     # Second-order extrapolation of the step velocity; after a jump only the last
     # velocity is trusted.
     v_guess = jtu.tree_map(
         lambda a, b: jnp.where(made_jump, a, 2 * a - b), v_prev, v_prev2
     )
-    q1, p1, v, result = discrete_hamiltonian_map(
+    dq, dp, v, result = discrete_hamiltonian_map(
         rule, term.lagrangian, tp0, h, q0, p0, args, v_guess, root_finder, max_steps
     )
-    y1 = (q1, p1)
+    y1, compensation = compensated_add(
+        y0, (dq, dp), compensation, compensated, made_jump
+    )
     result = step_result(result, y0, y1, all_finite(v_prev))
     dense_info = hermite_dense_info(term.lagrangian, tp0, tp1, h, y0, y1, args, v)
-    return y1, None, dense_info, (v, v_prev), result
+    return y1, None, dense_info, ((v, v_prev), compensation), result

@@ -27,6 +27,7 @@ from .._misc import (
 )
 from .base import (
     AbstractVariationalSolver,
+    compensated_add,
     hermite_dense_info,
     step_result,
     step_times,
@@ -34,9 +35,10 @@ from .base import (
 )
 
 
-# The past positions, newest first, `(q_{k-1}, q_{k-2}[, q_{k-3}])`, and the steps
-# between them, `(t_k - t_{k-1}, t_{k-1} - t_{k-2}[, t_{k-2} - t_{k-3}])`.
-_History = tuple[tuple[Q, ...], tuple[Array, ...]]
+# The past positions, newest first, `(q_{k-1}, q_{k-2}[, q_{k-3}])`, the steps
+# between them, `(t_k - t_{k-1}, t_{k-1} - t_{k-2}[, t_{k-2} - t_{k-3}])`, and the
+# compensation of the summation of positions.
+_History = tuple[tuple[Q, ...], tuple[Array, ...], Q]
 
 
 def _sub(a, b):
@@ -105,6 +107,7 @@ class LinearizedVI(AbstractVariationalSolver):
     linear_solver: lx.AbstractLinearSolver = lx.LU()
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 16
+    compensated: bool = True
 
     def __check_init__(self):
         if self.velocity not in ("forward", "centered"):
@@ -129,7 +132,7 @@ class LinearizedVI(AbstractVariationalSolver):
         t = tp0
         v_guess = jtu.tree_map(jnp.zeros_like, p)
         for _ in range(self._n_past()):
-            q, p, v, _ = discrete_hamiltonian_map(
+            dq, dp, v, _ = discrete_hamiltonian_map(
                 self.discrete_lagrangian,
                 lagrangian,
                 t,
@@ -141,10 +144,12 @@ class LinearizedVI(AbstractVariationalSolver):
                 root_finder,
                 self.root_find_max_steps,
             )
+            q = jtu.tree_map(lambda a, b: a + b, q, dq)
+            p = jtu.tree_map(lambda a, b: a + b, p, dp)
             qs.append(q)
             t = t - h
             v_guess = v
-        return tuple(qs), tuple(h for _ in qs)
+        return tuple(qs), tuple(h for _ in qs), jtu.tree_map(jnp.zeros_like, y0[0])
 
     def init(
         self,
@@ -173,7 +178,7 @@ class LinearizedVI(AbstractVariationalSolver):
         lagrangian = term.lagrangian
         q0, _ = split_state(y0)
         tp0, tp1, h = step_times(terms, direction, t0, t1, state_dtype(y0))
-        qs, hs = lax.cond(
+        qs, hs, compensation = lax.cond(
             unvmap_any(made_jump),
             lambda: self._history(lagrangian, tp0, h, y0, args),
             lambda: solver_state,
@@ -206,7 +211,10 @@ class LinearizedVI(AbstractVariationalSolver):
         )
         sol = lx.linear_solve(operator, rhs, self.linear_solver, throw=False)
         u_z = sol.value
-        q1 = jtu.tree_map(lambda b, u: b + span * u, base, u_z)
+        dq = jtu.tree_map(lambda b, u, q: (b - q) + span * u, base, u_z, q0)
+        q1, compensation = compensated_add(
+            q0, dq, compensation, self.compensated, made_jump
+        )
         # The discrete Legendre transform p_{k+1} = D2 Ld(q_k, q_{k+1}) through the
         # step's velocity: u_z itself for forward velocities, so nothing cancels.
         v = step_velocity(q1, u_z)
@@ -216,7 +224,7 @@ class LinearizedVI(AbstractVariationalSolver):
         dense_info = hermite_dense_info(lagrangian, tp0, tp1, h, y0, y1, args, v)
         new_qs = (q0,) + qs[:-1]
         new_hs = (h,) + hs[:-1]
-        return y1, None, dense_info, (new_qs, new_hs), result
+        return y1, None, dense_info, (new_qs, new_hs, compensation), result
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)
@@ -232,4 +240,6 @@ LinearizedVI.__init__.__doc__ = """**Arguments:**
 - `root_finder`, `root_find_max_steps`: for the backward variational steps that build
     the starting history (at `init` and after a jump); as for
     [`diffrax_vi.MidpointVI`][].
+- `compensated`: compensated (Kahan) summation of the new positions (default). The
+    momenta are recomputed each step, not summed.
 """

@@ -8,10 +8,12 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, RealScalarLike
 from .._misc import all_finite, unvmap_any
-from .base import AbstractSymplecticSolver
+from .base import AbstractSymmetricSolver, AbstractSymplecticSolver, compensated_add
 
 
-_SolverState = PyTree  # dp/dt at the start of the step, reused from the last one.
+# dp/dt at the start of the step, reused from the last one, and the compensation of
+# the summation.
+_SolverState = tuple[PyTree, PyTree]
 
 
 def _start_force(term_p, t0, y0, args):
@@ -35,7 +37,7 @@ def _add(a, b):
     return jtu.tree_map(lambda x, y: x + y, a, b)
 
 
-class StormerVerlet(AbstractSymplecticSolver):
+class StormerVerlet(AbstractSymplecticSolver, AbstractSymmetricSolver):
     r"""Störmer–Verlet (velocity Verlet, leapfrog) method for partitioned systems.
 
     2nd order symmetric symplectic explicit method. One evaluation of each vector
@@ -79,6 +81,8 @@ class StormerVerlet(AbstractSymplecticSolver):
     term_structure: ClassVar = (dfx.AbstractTerm, dfx.AbstractTerm)
     interpolation_cls: ClassVar = dfx.ThirdOrderHermitePolynomialInterpolation
 
+    compensated: bool = True
+
     def order(self, terms):
         return 2
 
@@ -91,7 +95,8 @@ class StormerVerlet(AbstractSymplecticSolver):
         args: Args,
     ) -> _SolverState:
         _, term_p = terms
-        return _start_force(term_p, t0, y0, args)
+        compensation = jtu.tree_map(jnp.zeros_like, y0)
+        return _start_force(term_p, t0, y0, args), compensation
 
     def step(
         self,
@@ -108,19 +113,24 @@ class StormerVerlet(AbstractSymplecticSolver):
         term_q, term_p = terms
         q0, p0 = y0
         # After a jump the cached force belongs to the state before the jump.
+        cached, compensation = solver_state
         g0 = jax.lax.cond(
             unvmap_any(made_jump),
             lambda: _start_force(term_p, t0, y0, args),
-            lambda: solver_state,
+            lambda: cached,
         )
         control_q = term_q.contr(t0, t1)
         control_p = term_p.contr(t0, t1)
         half_p = _half(control_p)
-        p_half = _add(p0, term_p.prod(g0, half_p))
-        q1 = _add(q0, term_q.vf_prod(0.5 * (t0 + t1), p_half, args, control_q))
+        kick0 = term_p.prod(g0, half_p)
+        dq = term_q.vf_prod(0.5 * (t0 + t1), _add(p0, kick0), args, control_q)
+        comp_q, comp_p = compensation
+        q1, comp_q = compensated_add(q0, dq, comp_q, self.compensated, made_jump)
         g1 = term_p.vf(t1, q1, args)
-        p1 = _add(p_half, term_p.prod(g1, half_p))
+        dp = _add(kick0, term_p.prod(g1, half_p))
+        p1, comp_p = compensated_add(p0, dp, comp_p, self.compensated, made_jump)
         y1 = (q1, p1)
+        compensation = (comp_q, comp_p)
 
         result = dfx.RESULTS.where(
             _momentum_finite(p1), dfx.RESULTS.successful, dfx.RESULTS.nonfinite
@@ -131,7 +141,7 @@ class StormerVerlet(AbstractSymplecticSolver):
             k0=(term_q.vf_prod(t0, p0, args, control_q), term_p.prod(g0, control_p)),
             k1=(term_q.vf_prod(t1, p1, args, control_q), term_p.prod(g1, control_p)),
         )
-        return y1, None, dense_info, g1, result
+        return y1, None, dense_info, (g1, compensation), result
 
     def func(
         self,
@@ -145,4 +155,8 @@ class StormerVerlet(AbstractSymplecticSolver):
         return term_q.vf(t0, p0, args), term_p.vf(t0, q0, args)
 
 
-StormerVerlet.__init__.__doc__ = """**Arguments:** None"""
+StormerVerlet.__init__.__doc__ = """**Arguments:**
+
+- `compensated`: compensated (Kahan) summation of each step's increment (default), so
+    that round-off in the energy grows like the square root of the number of steps.
+"""

@@ -8,6 +8,7 @@ from .._discrete import TrapezoidalRule
 from .._lagrangian import AbstractSeparableLagrangian
 from .._term import separable_terms
 from .base import (
+    AbstractSymmetricSolver,
     AbstractVariationalSolver,
     implicit_vi_init,
     implicit_vi_step,
@@ -28,7 +29,7 @@ def _partitioned(terms: dfx.AbstractTerm):
     return pair
 
 
-class TrapezoidalVI(AbstractVariationalSolver):
+class TrapezoidalVI(AbstractVariationalSolver, AbstractSymmetricSolver):
     r"""Trapezoidal variational integrator.
 
     2nd order symmetric symplectic variational integrator. Explicit (Störmer–Verlet,
@@ -60,6 +61,7 @@ class TrapezoidalVI(AbstractVariationalSolver):
 
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 16
+    compensated: bool = True
 
     def order(self, terms):
         return 2
@@ -74,7 +76,7 @@ class TrapezoidalVI(AbstractVariationalSolver):
     ) -> PyTree:
         pair = _partitioned(terms)
         if pair is not None:
-            return StormerVerlet().init(pair, t0, t1, y0, args)
+            return StormerVerlet(self.compensated).init(pair, t0, t1, y0, args)
         return implicit_vi_init(terms, "TrapezoidalVI", t0, y0, args)
 
     def step(
@@ -89,11 +91,14 @@ class TrapezoidalVI(AbstractVariationalSolver):
     ):
         pair = _partitioned(terms)
         if pair is not None:
-            return StormerVerlet().step(pair, t0, t1, y0, args, solver_state, made_jump)
+            return StormerVerlet(self.compensated).step(
+                pair, t0, t1, y0, args, solver_state, made_jump
+            )
         return implicit_vi_step(
             TrapezoidalRule(),
             self.root_finder,
             self.root_find_max_steps,
+            self.compensated,
             terms,
             "TrapezoidalVI",
             t0,
@@ -114,4 +119,5 @@ TrapezoidalVI.__init__.__doc__ = """**Arguments:**
     non-separable Lagrangian. Defaults to `optimistix.Newton` with
     `rtol = atol = sqrt(eps)` of the state's dtype.
 - `root_find_max_steps`: iterations after which a step is reported as failed.
+- `compensated`: compensated (Kahan) summation of each step's increment (default).
 """
