@@ -1,0 +1,270 @@
+"""Higher-order variational integrators: VPRK tableaus, compositions, compensated
+summation."""
+
+import dataclasses
+
+import diffrax as dfx
+import diffrax_vi as dvi
+import equinox as eqx
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from diffrax_vi._solver.composition import composition_coefficients, SCHEMES
+from diffrax_vi._solver.vprk import gauss_tableau, lobatto_tableau
+
+from .helpers import (
+    DoublePendulum,
+    fitted_order,
+    KEPLER,
+    kepler_state,
+    max_abs_diff,
+    Pendulum,
+    reference,
+)
+
+
+def _terms(lagrangian, solver):
+    base = solver.base if isinstance(solver, dvi.Composition) else solver
+    if isinstance(base, dvi.StormerVerlet):
+        return dvi.separable_terms(lagrangian)
+    return dvi.LagrangianTerm(lagrangian)
+
+
+@eqx.filter_jit
+def _final(lagrangian, solver, y0, t1, dt0):
+    sol = dfx.diffeqsolve(
+        _terms(lagrangian, solver), solver, 0.0, t1, dt0, y0, max_steps=1024
+    )
+    return jax.tree.map(lambda x: x[-1], sol.ys)
+
+
+# (solver, claimed order, step counts for the pendulum and for Kepler): in the
+# asymptotic range, with every error above the round-off floor.
+METHODS = [
+    (dvi.GaussVPRK(2), 4, [20, 40, 80, 160], [40, 80, 160, 320]),
+    (dvi.GaussVPRK(3), 6, [15, 22, 30, 45], [30, 45, 60, 90]),
+    (dvi.LobattoVPRK(3), 4, [20, 40, 80, 160], [40, 80, 160, 320]),
+    (dvi.LobattoVPRK(4), 6, [15, 22, 30, 45], [60, 90, 120, 180]),
+    (
+        dvi.Composition(dvi.StormerVerlet(), "yoshida4"),
+        4,
+        [40, 80, 160, 320],
+        [80, 160, 320, 640],
+    ),
+    (
+        dvi.Composition(dvi.StormerVerlet(), "suzuki4"),
+        4,
+        [40, 80, 160, 320],
+        [80, 160, 320, 640],
+    ),
+    (
+        dvi.Composition(dvi.StormerVerlet(), "kahan_li6"),
+        6,
+        [10, 20, 40, 80],
+        [40, 80, 160, 320],
+    ),
+    (
+        dvi.Composition(dvi.StormerVerlet(), "kahan_li8"),
+        8,
+        [8, 10, 14, 20],
+        [40, 56, 80, 112],
+    ),
+    (
+        dvi.Composition(dvi.MidpointVI(), "yoshida4"),
+        4,
+        [40, 80, 160, 320],
+        [80, 160, 320, 640],
+    ),
+]
+IDS = [
+    "gauss2",
+    "gauss3",
+    "lobatto3",
+    "lobatto4",
+    "yoshida4",
+    "suzuki4",
+    "kahan_li6",
+    "kahan_li8",
+    "midpoint-yoshida4",
+]
+
+
+@pytest.mark.parametrize("solver,order,ns_pendulum,ns_kepler", METHODS, ids=IDS)
+@pytest.mark.parametrize("problem", ["pendulum", "kepler"])
+def test_order(solver, order, ns_pendulum, ns_kepler, problem):
+    if problem == "pendulum":
+        lagrangian, y0, t1 = Pendulum(), (jnp.array(1.5), jnp.array(0.0)), 4.0
+        ns = ns_pendulum
+    else:
+        lagrangian, y0, t1, ns = KEPLER, kepler_state(), 2 * np.pi, ns_kepler
+    exact = reference(lagrangian, y0, t1)
+    errors = [
+        max_abs_diff(_final(lagrangian, solver, y0, t1, jnp.array(t1 / n)), exact)
+        for n in ns
+    ]
+    assert min(errors) > 1e-12, errors  # the fit is above the round-off floor
+    assert abs(fitted_order([t1 / n for n in ns], errors) - order) < 0.3, errors
+
+
+def test_gauss1_is_midpoint_and_lobatto2_is_stormer_verlet():
+    y0 = (jnp.array(1.2), jnp.array(0.3))
+    a = _final(Pendulum(), dvi.GaussVPRK(1), y0, 3.0, jnp.array(0.05))
+    b = _final(Pendulum(), dvi.MidpointVI(), y0, 3.0, jnp.array(0.05))
+    assert max_abs_diff(a, b) < 1e-15
+    c = _final(Pendulum(), dvi.LobattoVPRK(2), y0, 3.0, jnp.array(0.05))
+    d = _final(Pendulum(), dvi.StormerVerlet(), y0, 3.0, jnp.array(0.05))
+    assert max_abs_diff(c, d) < 1e-14
+
+
+@pytest.mark.parametrize("s", [1, 2, 3, 4, 5])
+def test_tableaus_are_valid_and_exact(s):
+    # Built tableaus pass validation; Gauss integrates polynomials of degree 2s - 1
+    # exactly, Lobatto of degree 2s - 3.
+    gauss = gauss_tableau(s)
+    assert all(
+        np.isclose(gauss.b @ gauss.c**k, 1 / (k + 1), atol=1e-14) for k in range(2 * s)
+    )
+    if s >= 2:
+        lob = lobatto_tableau(s)
+        assert lob.c[0] == 0 and np.isclose(lob.c[-1], 1)
+        assert all(
+            np.isclose(lob.b @ lob.c**k, 1 / (k + 1), atol=1e-14)
+            for k in range(2 * s - 2)
+        )
+        # IIIA is explicit in its first stage, IIIB in its last column.
+        assert np.allclose(lob.a[0], 0) and np.allclose(lob.a_bar[:, -1], 0)
+
+
+def test_non_symplectic_tableau_is_rejected():
+    good = gauss_tableau(2)
+    with pytest.raises(ValueError, match="not symplectic"):
+        dataclasses.replace(good, a_bar=good.a_bar + 0.01)
+    with pytest.raises(ValueError, match="row sums"):
+        dataclasses.replace(good, c=good.c + 0.01)
+    with pytest.raises(ValueError, match="stages"):
+        dvi.GaussVPRK(0)
+
+
+@pytest.mark.parametrize("scheme", SCHEMES)
+def test_composition_order_conditions(scheme):
+    # For a symmetric second-order base, a symmetric composition of order p needs
+    # sum g = 1 and sum g^k = 0 for odd 3 <= k < p (Hairer-Lubich-Wanner V.3); the
+    # fitted orders above check the remaining conditions.
+    gammas, order = composition_coefficients(scheme)
+    assert np.allclose(gammas, gammas[::-1])
+    assert np.isclose(gammas.sum(), 1, atol=1e-15)
+    for k in range(3, order, 2):
+        assert abs(np.sum(gammas**k)) < 1e-14, (k, np.sum(gammas**k))
+    # The next odd power does not vanish: the order is not higher by accident.
+    assert abs(np.sum(gammas ** (order + 1))) > 1e-6
+
+
+def test_composition_rejects_non_symmetric_base():
+    with pytest.raises(ValueError, match="symmetric"):
+        dvi.Composition(dvi.LinearizedVI(), "yoshida4")
+    with pytest.raises(ValueError, match="Unknown composition scheme"):
+        dvi.Composition(dvi.MidpointVI(), "ruth3")
+
+
+def _symplecticity_defect(terms, solver, y0, h=0.2):
+    flat, unravel = jax.flatten_util.ravel_pytree(y0)
+
+    def step(x):
+        y = unravel(x)
+        state = solver.init(terms, 0.0, h, y, None)
+        y1, *_ = solver.step(terms, 0.0, h, y, None, state, False)
+        return jax.flatten_util.ravel_pytree(y1)[0]
+
+    m = jax.jacrev(step)(flat)
+    n = flat.shape[0] // 2
+    j = jnp.block([[jnp.zeros((n, n)), jnp.eye(n)], [-jnp.eye(n), jnp.zeros((n, n))]])
+    return float(jnp.max(jnp.abs(m.T @ j @ m - j)))
+
+
+@pytest.mark.parametrize(
+    "solver",
+    [
+        dvi.GaussVPRK(2),
+        dvi.GaussVPRK(3),
+        dvi.LobattoVPRK(3),
+        dvi.Composition(dvi.MidpointVI(), "yoshida4"),
+        dvi.Composition(dvi.TrapezoidalVI(), "kahan_li6"),
+    ],
+    ids=["gauss2", "gauss3", "lobatto3", "midpoint-yoshida4", "trapezoidal-kahan_li6"],
+)
+def test_symplectic_step(solver):
+    y0 = (jnp.array([0.4, -0.7]), jnp.array([0.3, 0.5]))
+    terms = dvi.LagrangianTerm(DoublePendulum())
+    assert _symplecticity_defect(terms, solver, y0) < 1e-12
+
+
+def test_composition_of_stormer_verlet_is_symplectic():
+    sep = dvi.SeparableLagrangian(
+        lambda t, q, a: 0.5 * jnp.sum(q**2) + q[0] ** 2 * q[1] - q[1] ** 3 / 3
+    )
+    y0 = (jnp.array([0.1, -0.2]), jnp.array([0.3, 0.25]))
+    solver = dvi.Composition(dvi.StormerVerlet(), "kahan_li8")
+    assert _symplecticity_defect(dvi.separable_terms(sep), solver, y0) < 1e-12
+
+
+@pytest.mark.parametrize(
+    "solver",
+    [dvi.GaussVPRK(2), dvi.Composition(dvi.StormerVerlet(), "suzuki4")],
+    ids=["gauss2", "suzuki4"],
+)
+def test_jit_vmap_grad(solver):
+    def q_final(g, q0):
+        lagrangian = Pendulum(g=g)
+        sol = dfx.diffeqsolve(
+            _terms(lagrangian, solver), solver, 0.0, 2.0, 0.1, (q0, jnp.array(0.0))
+        )
+        return sol.ys[0][-1]
+
+    g, eps = jnp.array(1.3), 1e-6
+    fd = (q_final(g + eps, 1.0) - q_final(g - eps, 1.0)) / (2 * eps)
+    assert jnp.allclose(jax.jit(jax.grad(q_final))(g, 1.0), fd, rtol=1e-6)
+    q0s = jnp.array([0.3, 1.0])
+    batched = jax.vmap(lambda q: q_final(g, q))(q0s)
+    assert jnp.allclose(batched[1], q_final(g, q0s[1]), rtol=1e-14)
+
+
+def test_compensated_summation_brouwer():
+    # A 2-D oscillator, whose quadratic energy the midpoint rule conserves exactly:
+    # all energy error is round-off. Over 10^5 steps an ensemble's RMS error grows
+    # like sqrt(t) without compensation and stays at a few eps with it.
+    osc = dvi.SeparableLagrangian(lambda t, q, a: 0.5 * jnp.sum(q**2))
+    n, h = 100_000, 0.01
+    q0 = jnp.array([[1.0, 0.5]]) + 1e-3 * jax.random.normal(jax.random.key(0), (64, 2))
+    ts = jnp.linspace(0, n * h, 101)
+    energy = lambda q, p: 0.5 * jnp.sum(p**2 + q**2, axis=-1)
+
+    def rms(compensated):
+        solver = dvi.MidpointVI(compensated=compensated)
+        qs, ps = jax.vmap(
+            lambda q: (
+                dfx.diffeqsolve(
+                    dvi.LagrangianTerm(osc),
+                    solver,
+                    0.0,
+                    n * h,
+                    h,
+                    (q, jnp.zeros(2)),
+                    saveat=dfx.SaveAt(ts=ts),
+                    max_steps=n + 1,
+                ).ys
+            )
+        )(q0)
+        err = energy(qs, ps) - energy(qs[:, :1], ps[:, :1])
+        return np.sqrt(np.mean(np.asarray(err[:, 1:]) ** 2, axis=0))
+
+    plain, kahan = rms(False), rms(True)
+    t = np.asarray(ts[1:])
+    late = t >= 100
+    slope_plain = np.polyfit(np.log(t[late]), np.log(plain[late]), 1)[0]
+    slope_kahan = np.polyfit(np.log(t[late]), np.log(kahan[late]), 1)[0]
+    assert abs(slope_plain - 0.5) < 0.15, slope_plain  # random walk, Brouwer's law
+    assert slope_kahan < 0.35, slope_kahan  # below the random walk
+    assert plain[-1] > 10 * kahan[-1]
+    assert kahan[-1] < 1e-15
