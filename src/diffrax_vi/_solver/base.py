@@ -30,10 +30,12 @@ class AbstractSymmetricSolver(dfx.AbstractSolver):
     order by [`diffrax_vi.Composition`][]."""
 
 
-class AbstractVariationalSolver(AbstractSymplecticSolver):
+class AbstractVariationalSolver(dfx.AbstractSolver):
     """Base class for variational integrators: solvers that read the Lagrangian of a
-    [`diffrax_vi.LagrangianTerm`][] and step its discrete Euler–Lagrange equations in
-    position–momentum form on `y = (q, p)`.
+    [`diffrax_vi.LagrangianTerm`][] and step its discrete Euler–Lagrange equations on
+    `y = (q, p)`. The one-step ones are also
+    [`diffrax_vi.AbstractSymplecticSolver`][]s; the multistep
+    [`diffrax_vi.LinearizedVI`][] is only presymplectic.
 
     Dense output is cubic Hermite interpolation through the states and Hamilton's
     vector field at both ends of each step.

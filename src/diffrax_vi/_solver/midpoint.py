@@ -6,13 +6,16 @@ from .._custom_types import Args, RealScalarLike
 from .._discrete import MidpointRule
 from .base import (
     AbstractSymmetricSolver,
+    AbstractSymplecticSolver,
     AbstractVariationalSolver,
     implicit_vi_init,
     implicit_vi_step,
 )
 
 
-class MidpointVI(AbstractVariationalSolver, AbstractSymmetricSolver):
+class MidpointVI(
+    AbstractVariationalSolver, AbstractSymplecticSolver, AbstractSymmetricSolver
+):
     r"""Midpoint variational integrator.
 
     2nd order symmetric symplectic variational integrator. One nonlinear solve per step

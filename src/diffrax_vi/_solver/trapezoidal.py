@@ -9,6 +9,7 @@ from .._lagrangian import AbstractSeparableLagrangian
 from .._term import separable_terms
 from .base import (
     AbstractSymmetricSolver,
+    AbstractSymplecticSolver,
     AbstractVariationalSolver,
     implicit_vi_init,
     implicit_vi_step,
@@ -29,7 +30,9 @@ def _partitioned(terms: dfx.AbstractTerm):
     return pair
 
 
-class TrapezoidalVI(AbstractVariationalSolver, AbstractSymmetricSolver):
+class TrapezoidalVI(
+    AbstractVariationalSolver, AbstractSymplecticSolver, AbstractSymmetricSolver
+):
     r"""Trapezoidal variational integrator.
 
     2nd order symmetric symplectic variational integrator. Explicit (Störmer–Verlet,

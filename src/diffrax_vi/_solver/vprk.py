@@ -22,6 +22,7 @@ from .._misc import (
 )
 from .base import (
     AbstractSymmetricSolver,
+    AbstractSymplecticSolver,
     AbstractVariationalSolver,
     compensated_add,
     hermite_dense_info,
@@ -116,7 +117,9 @@ def _combine(coefficients: np.ndarray, stacked: PyTree) -> PyTree:
     )
 
 
-class AbstractVPRK(AbstractVariationalSolver, AbstractSymmetricSolver):
+class AbstractVPRK(
+    AbstractVariationalSolver, AbstractSymplecticSolver, AbstractSymmetricSolver
+):
     r"""Variational partitioned Runge–Kutta methods on a
     [`diffrax_vi.LagrangianTerm`][]. The discrete Lagrangian is
     $L_d = h\sum_i b_i L(t_0 + c_i h, Q_i, V_i)$ with

@@ -11,15 +11,31 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._solver import MidpointVI, StormerVerlet, TrapezoidalVI
+from .._solver import (
+    Composition,
+    GaussVPRK,
+    LinearizedVI,
+    LobattoVPRK,
+    MidpointVI,
+    StormerVerlet,
+    TrapezoidalVI,
+)
 from .._term import LagrangianTerm, separable_terms
 from ..scenes import Scene
 
 
+# Name -> a function making the solver.
 SOLVERS = {
     "MidpointVI": MidpointVI,
     "TrapezoidalVI": TrapezoidalVI,
     "StormerVerlet": StormerVerlet,
+    "GaussVPRK2": lambda: GaussVPRK(2),
+    "GaussVPRK3": lambda: GaussVPRK(3),
+    "LobattoVPRK3": lambda: LobattoVPRK(3),
+    "Yoshida4": lambda: Composition(StormerVerlet(), "yoshida4"),
+    "KahanLi6": lambda: Composition(StormerVerlet(), "kahan_li6"),
+    "KahanLi8": lambda: Composition(StormerVerlet(), "kahan_li8"),
+    "LinearizedVI": lambda: LinearizedVI(velocity="centered"),
     "SemiImplicitEuler": dfx.SemiImplicitEuler,
     "Tsit5": dfx.Tsit5,
     "Dopri5": dfx.Dopri5,
