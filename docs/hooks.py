@@ -29,23 +29,39 @@ def methods_table() -> str:
     ]
     for s in (2, 3, 4):
         rows.append(
-            _row(f"GaussVPRK({s})", dvi.GaussVPRK(s), "implicit",
-                 f"{s} per Newton iteration")
+            _row(
+                f"GaussVPRK({s})",
+                dvi.GaussVPRK(s),
+                "implicit",
+                f"{s} per Newton iteration",
+            )
         )
     for s in (3, 4):
         rows.append(
-            _row(f"LobattoVPRK({s})", dvi.LobattoVPRK(s), "implicit",
-                 f"{s} per Newton iteration")
+            _row(
+                f"LobattoVPRK({s})",
+                dvi.LobattoVPRK(s),
+                "implicit",
+                f"{s} per Newton iteration",
+            )
         )
     for scheme in ("yoshida4", "suzuki4", "kahan_li6", "kahan_li8"):
         m = len(composition_coefficients(scheme)[0])
         rows.append(
-            _row(f'Composition(StormerVerlet(), "{scheme}")',
-                 dvi.Composition(sv, scheme), "explicit", str(m))
+            _row(
+                f'Composition(StormerVerlet(), "{scheme}")',
+                dvi.Composition(sv, scheme),
+                "explicit",
+                str(m),
+            )
         )
     rows.append(
-        _row("LinearizedVI(velocity=...)", dvi.LinearizedVI(), "one linear solve",
-             "1 force and 1 Jacobian of the DEL residual")
+        _row(
+            "LinearizedVI(velocity=...)",
+            dvi.LinearizedVI(),
+            "one linear solve",
+            "1 force and 1 Jacobian of the DEL residual",
+        )
     )
     header = (
         "| method | order | explicit / implicit | symmetric | symplectic "

@@ -22,6 +22,7 @@ from .helpers import (
     max_abs_diff,
     Pendulum,
     reference,
+    symplecticity_defect,
 )
 
 
@@ -168,21 +169,6 @@ def test_composition_rejects_non_symmetric_base():
         dvi.Composition(dvi.MidpointVI(), "ruth3")
 
 
-def _symplecticity_defect(terms, solver, y0, h=0.2):
-    flat, unravel = jax.flatten_util.ravel_pytree(y0)
-
-    def step(x):
-        y = unravel(x)
-        state = solver.init(terms, 0.0, h, y, None)
-        y1, *_ = solver.step(terms, 0.0, h, y, None, state, False)
-        return jax.flatten_util.ravel_pytree(y1)[0]
-
-    m = jax.jacrev(step)(flat)
-    n = flat.shape[0] // 2
-    j = jnp.block([[jnp.zeros((n, n)), jnp.eye(n)], [-jnp.eye(n), jnp.zeros((n, n))]])
-    return float(jnp.max(jnp.abs(m.T @ j @ m - j)))
-
-
 @pytest.mark.parametrize(
     "solver",
     [
@@ -197,7 +183,7 @@ def _symplecticity_defect(terms, solver, y0, h=0.2):
 def test_symplectic_step(solver):
     y0 = (jnp.array([0.4, -0.7]), jnp.array([0.3, 0.5]))
     terms = dvi.LagrangianTerm(DoublePendulum())
-    assert _symplecticity_defect(terms, solver, y0) < 1e-12
+    assert symplecticity_defect(terms, solver, y0) < 1e-12
 
 
 def test_composition_of_stormer_verlet_is_symplectic():
@@ -206,7 +192,7 @@ def test_composition_of_stormer_verlet_is_symplectic():
     )
     y0 = (jnp.array([0.1, -0.2]), jnp.array([0.3, 0.25]))
     solver = dvi.Composition(dvi.StormerVerlet(), "kahan_li8")
-    assert _symplecticity_defect(dvi.separable_terms(sep), solver, y0) < 1e-12
+    assert symplecticity_defect(dvi.separable_terms(sep), solver, y0) < 1e-12
 
 
 @pytest.mark.parametrize(
