@@ -49,25 +49,22 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
     compensated: AbstractVar[bool]
 
 
+def initial_compensation(y: PyTree, enabled: bool) -> PyTree | None:
+    """Zero compensation for `y`, or `None` (no state to carry) when disabled."""
+    return jtu.tree_map(jnp.zeros_like, y) if enabled else None
+
+
 def compensated_add(
-    y0: PyTree,
-    increment: PyTree,
-    compensation: PyTree,
-    enabled: bool,
-    made_jump: Bool[ArrayLike, ""] | bool,
-) -> tuple[PyTree, PyTree]:
+    y0: PyTree, increment: PyTree, compensation: PyTree | None
+) -> tuple[PyTree, PyTree | None]:
     """`y0 + increment` with compensated (Kahan) summation.
 
     `compensation` carries the rounding error of the previous additions, fed back into
-    the next increment. With `enabled=False` it is a plain sum and `compensation` is
-    passed through unchanged.
+    the next increment; `None` means a plain sum. It is at most an ulp of `y0`, so it
+    needs no reset after a jump.
     """
-    if not enabled:
-        return jtu.tree_map(lambda a, b: a + b, y0, increment), compensation
-    # After a jump the carried error belongs to the state before it.
-    compensation = jtu.tree_map(
-        lambda c: jnp.where(made_jump, jnp.zeros_like(c), c), compensation
-    )
+    if compensation is None:
+        return jtu.tree_map(lambda a, b: a + b, y0, increment), None
     corrected = jtu.tree_map(lambda d, c: d - c, increment, compensation)
     y1 = jtu.tree_map(lambda a, d: a + d, y0, corrected)
     compensation = jtu.tree_map(lambda a, b, d: (b - a) - d, y0, y1, corrected)
@@ -152,7 +149,12 @@ _VIState = tuple[tuple[V, V], PyTree]
 
 
 def implicit_vi_init(
-    terms: dfx.AbstractTerm, solver: str, t0: RealScalarLike, y0: PyTree, args: Args
+    terms: dfx.AbstractTerm,
+    solver: str,
+    t0: RealScalarLike,
+    y0: PyTree,
+    args: Args,
+    compensated: bool,
 ) -> _VIState:
     term, direction = unwrap_term(terms, solver)
     q0, p0 = split_state(y0)
@@ -163,14 +165,13 @@ def implicit_vi_init(
     # first step reports as `RESULTS.singular`.
     ok = result == dfx.RESULTS.successful
     v0 = jtu.tree_map(lambda v: jnp.where(ok, v, jnp.nan), v0)
-    return (v0, v0), jtu.tree_map(jnp.zeros_like, y0)
+    return (v0, v0), initial_compensation(y0, compensated)
 
 
 def implicit_vi_step(
     rule: AbstractDiscreteLagrangian,
     root_finder: optx.AbstractRootFinder | None,
     max_steps: int,
-    compensated: bool,
     terms: dfx.AbstractTerm,
     solver: str,
     t0: RealScalarLike,
@@ -195,9 +196,7 @@ def implicit_vi_step(
     dq, dp, v, result = discrete_hamiltonian_map(
         rule, term.lagrangian, tp0, h, q0, p0, args, v_guess, root_finder, max_steps
     )
-    y1, compensation = compensated_add(
-        y0, (dq, dp), compensation, compensated, made_jump
-    )
+    y1, compensation = compensated_add(y0, (dq, dp), compensation)
     result = step_result(result, y0, y1, all_finite(v_prev))
     dense_info = hermite_dense_info(term.lagrangian, tp0, tp1, h, y0, y1, args, v)
     return y1, None, dense_info, ((v, v_prev), compensation), result

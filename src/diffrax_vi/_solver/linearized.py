@@ -29,6 +29,7 @@ from .base import (
     AbstractVariationalSolver,
     compensated_add,
     hermite_dense_info,
+    initial_compensation,
     step_result,
     step_times,
     unwrap_term,
@@ -149,7 +150,8 @@ class LinearizedVI(AbstractVariationalSolver):
             qs.append(q)
             t = t - h
             v_guess = v
-        return tuple(qs), tuple(h for _ in qs), jtu.tree_map(jnp.zeros_like, y0[0])
+        compensation = initial_compensation(y0[0], self.compensated)
+        return tuple(qs), tuple(h for _ in qs), compensation
 
     def init(
         self,
@@ -212,9 +214,7 @@ class LinearizedVI(AbstractVariationalSolver):
         sol = lx.linear_solve(operator, rhs, self.linear_solver, throw=False)
         u_z = sol.value
         dq = jtu.tree_map(lambda b, u, q: (b - q) + span * u, base, u_z, q0)
-        q1, compensation = compensated_add(
-            q0, dq, compensation, self.compensated, made_jump
-        )
+        q1, compensation = compensated_add(q0, dq, compensation)
         # The discrete Legendre transform p_{k+1} = D2 Ld(q_k, q_{k+1}) through the
         # step's velocity: u_z itself for forward velocities, so nothing cancels.
         v = step_velocity(q1, u_z)

@@ -68,7 +68,7 @@ class MidpointVI(
         y0: tuple[PyTree, PyTree],
         args: Args,
     ) -> PyTree:
-        return implicit_vi_init(terms, "MidpointVI", t0, y0, args)
+        return implicit_vi_init(terms, "MidpointVI", t0, y0, args, self.compensated)
 
     def step(
         self,
@@ -84,7 +84,6 @@ class MidpointVI(
             MidpointRule(),
             self.root_finder,
             self.root_find_max_steps,
-            self.compensated,
             terms,
             "MidpointVI",
             t0,

@@ -8,7 +8,12 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, RealScalarLike
 from .._misc import all_finite, unvmap_any
-from .base import AbstractSymmetricSolver, AbstractSymplecticSolver, compensated_add
+from .base import (
+    AbstractSymmetricSolver,
+    AbstractSymplecticSolver,
+    compensated_add,
+    initial_compensation,
+)
 
 
 # dp/dt at the start of the step, reused from the last one, and the compensation of
@@ -95,8 +100,9 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractSymmetricSolver):
         args: Args,
     ) -> _SolverState:
         _, term_p = terms
-        compensation = jtu.tree_map(jnp.zeros_like, y0)
-        return _start_force(term_p, t0, y0, args), compensation
+        return _start_force(term_p, t0, y0, args), initial_compensation(
+            y0, self.compensated
+        )
 
     def step(
         self,
@@ -123,14 +129,20 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractSymmetricSolver):
         control_p = term_p.contr(t0, t1)
         half_p = _half(control_p)
         kick0 = term_p.prod(g0, half_p)
-        dq = term_q.vf_prod(0.5 * (t0 + t1), _add(p0, kick0), args, control_q)
-        comp_q, comp_p = compensation
-        q1, comp_q = compensated_add(q0, dq, comp_q, self.compensated, made_jump)
-        g1 = term_p.vf(t1, q1, args)
-        dp = _add(kick0, term_p.prod(g1, half_p))
-        p1, comp_p = compensated_add(p0, dp, comp_p, self.compensated, made_jump)
+        p_half = _add(p0, kick0)
+        dq = term_q.vf_prod(0.5 * (t0 + t1), p_half, args, control_q)
+        if compensation is None:
+            q1 = _add(q0, dq)
+            g1 = term_p.vf(t1, q1, args)
+            p1 = _add(p_half, term_p.prod(g1, half_p))
+        else:
+            comp_q, comp_p = compensation
+            q1, comp_q = compensated_add(q0, dq, comp_q)
+            g1 = term_p.vf(t1, q1, args)
+            dp = _add(kick0, term_p.prod(g1, half_p))
+            p1, comp_p = compensated_add(p0, dp, comp_p)
+            compensation = (comp_q, comp_p)
         y1 = (q1, p1)
-        compensation = (comp_q, comp_p)
 
         result = dfx.RESULTS.where(
             _momentum_finite(p1), dfx.RESULTS.successful, dfx.RESULTS.nonfinite

@@ -80,7 +80,7 @@ class TrapezoidalVI(
         pair = _partitioned(terms)
         if pair is not None:
             return StormerVerlet(self.compensated).init(pair, t0, t1, y0, args)
-        return implicit_vi_init(terms, "TrapezoidalVI", t0, y0, args)
+        return implicit_vi_init(terms, "TrapezoidalVI", t0, y0, args, self.compensated)
 
     def step(
         self,
@@ -101,7 +101,6 @@ class TrapezoidalVI(
             TrapezoidalRule(),
             self.root_finder,
             self.root_find_max_steps,
-            self.compensated,
             terms,
             "TrapezoidalVI",
             t0,

@@ -153,10 +153,11 @@ class AbstractVPRK(
         y0: tuple[PyTree, PyTree],
         args: Args,
     ) -> PyTree:
-        (v0, _), _ = implicit_vi_init(terms, type(self).__name__, t0, y0, args)
+        (v0, _), compensation = implicit_vi_init(
+            terms, type(self).__name__, t0, y0, args, self.compensated
+        )
         stage_v = jtu.tree_map(lambda v: jnp.stack([v] * self.stages), v0)
-        zeros = jtu.tree_map(jnp.zeros_like, y0)
-        return stage_v, zeros
+        return stage_v, compensation
 
     def step(
         self,
@@ -209,9 +210,7 @@ class AbstractVPRK(
         dl_dq, _ = stage_grads(stage_v)
         dq = jtu.tree_map(lambda x: h * x, _combine(tableau.b, stage_v))
         dp = jtu.tree_map(lambda x: h * x, _combine(tableau.b, dl_dq))
-        y1, compensation = compensated_add(
-            y0, (dq, dp), compensation, self.compensated, made_jump
-        )
+        y1, compensation = compensated_add(y0, (dq, dp), compensation)
         result = step_result(
             dfx.RESULTS.promote(sol.result), y0, y1, all_finite(stage_v_prev)
         )
