@@ -93,10 +93,6 @@ def tree_axpy(a, x: PyTree, y: PyTree) -> PyTree:
     return jtu.tree_map(lambda xi, yi: a * xi + yi, x, y)
 
 
-def tree_cast(tree: PyTree, dtype: np.dtype) -> PyTree:
-    return jtu.tree_map(lambda x: jnp.asarray(x, dtype=dtype), tree)
-
-
 def unvmap_any(x: bool | Bool[ArrayLike, "..."]) -> Bool[Array, ""]:
     """True if `x` is true in any batch element: lets a branch stay a real branch under
     `jax.vmap` instead of becoming a select that evaluates both sides."""
