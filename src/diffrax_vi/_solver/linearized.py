@@ -12,8 +12,7 @@ from .._custom_types import Args, Q, RealScalarLike
 from .._discrete import (
     AbstractDiscreteLagrangian,
     average_grads,
-    d1_ld,
-    d2_ld,
+    del_residual,
     discrete_hamiltonian_map,
     MidpointRule,
 )
@@ -48,19 +47,6 @@ def _sub(a, b):
 
 def _scale(c, a):
     return jtu.tree_map(lambda x: c * x, a)
-
-
-def _del_residual_fn(rule, lagrangian, ts, hs, args):
-    """`F(x, y, z) = D2 Ld(x, y) + D1 Ld(y, z)` on the steps `hs = (h_xy, h_yz)`."""
-    t_x, t_y = ts
-    h_xy, h_yz = hs
-
-    def residual(x, y, z):
-        a = d2_ld(rule, lagrangian, t_x, t_x + h_xy, x, y, args)
-        b = d1_ld(rule, lagrangian, t_y, t_y + h_yz, y, z, args)
-        return jtu.tree_map(lambda i, j: i + j, a, b)
-
-    return residual
 
 
 class LinearizedVI(AbstractVariationalSolver):
@@ -188,10 +174,13 @@ class LinearizedVI(AbstractVariationalSolver):
         # The triple (x, y, z) = (q_{k-2}, q_{k-1}, q_k) and its steps.
         x, y, z = qs[1], qs[0], q0
         h_xy, h_yz = hs[1], hs[0]
-        ts = (tp0 - h_yz - h_xy, tp0 - h_yz)
-        residual = _del_residual_fn(
-            self.discrete_lagrangian, lagrangian, ts, (h_xy, h_yz), args
-        )
+        ts = (tp0 - h_yz - h_xy, tp0 - h_yz, tp0)
+
+        def residual(a, b, c):
+            return del_residual(
+                self.discrete_lagrangian, lagrangian, ts, (a, b, c), args
+            )
+
         _, linear = jax.linearize(residual, x, y, z)
         if self.velocity == "forward":
             u_x = _scale(1 / h_xy, _sub(y, x))
