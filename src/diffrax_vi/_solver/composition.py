@@ -171,9 +171,8 @@ class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
     ):
         gammas, _ = composition_coefficients(self.scheme)
         fractions = np.concatenate([[0.0], np.cumsum(gammas)])
-        fractions[-1] = 1.0
         ts = [t0 + f * (t1 - t0) for f in fractions]
-        ts[-1] = t1
+        ts[-1] = t1  # exactly, not up to the rounding of the cumulative sum
         y, state, result = y0, solver_state, dfx.RESULTS.successful
         for k in range(len(gammas)):
             y, _, _, state, sub_result = self.base.step(

@@ -187,14 +187,12 @@ class LinearizedVI(AbstractVariationalSolver):
             u_y = _scale(1 / h_yz, _sub(z, y))
             span = h  # q_{k+1} = q_k + h u_k
             base = z
-            step_velocity = lambda q1, u: u
         else:
             h_wx = hs[2]
             u_x = _scale(1 / (h_wx + h_xy), _sub(y, qs[2]))
             u_y = _scale(1 / (h_xy + h_yz), _sub(z, x))
             span = h_yz + h  # q_{k+1} = q_{k-1} + (h_{k-1} + h) u_k
             base = y
-            step_velocity = lambda q1, u: _scale(1 / h, _sub(q1, z))
         zeros = jtu.tree_map(jnp.zeros_like, z)
         rhs = jtu.tree_map(jnp.negative, linear(u_x, u_y, zeros))
         operator = lx.FunctionLinearOperator(
@@ -206,7 +204,7 @@ class LinearizedVI(AbstractVariationalSolver):
         q1, compensation = compensated_add(q0, dq, compensation)
         # The discrete Legendre transform p_{k+1} = D2 Ld(q_k, q_{k+1}) through the
         # step's velocity: u_z itself for forward velocities, so nothing cancels.
-        v = step_velocity(q1, u_z)
+        v = u_z if self.velocity == "forward" else _scale(1 / h, _sub(q1, z))
         _, p1 = average_grads(self.discrete_lagrangian, lagrangian, tp0, h, q0, v, args)
         y1 = (q1, p1)
         result = step_result(dfx.RESULTS.promote(sol.result), y0, y1, all_finite(qs))
