@@ -100,15 +100,11 @@ def runge_kutta(quick):
 
 def run_one(lagrangian, y0, solver, periods, setting, adaptive):
     t1 = PERIOD * periods
-    partitioned = isinstance(solver.term_structure, tuple) or (
-        isinstance(solver, dvi.Composition)
-        and isinstance(solver.base, dvi.StormerVerlet)
-    )
-    terms = (
-        dvi.separable_terms(lagrangian)
-        if partitioned
-        else dvi.LagrangianTerm(lagrangian)
-    )
+    # Partitioned solvers (compositions of StormerVerlet too) take the pair of terms.
+    if isinstance(solver.term_structure, tuple):
+        terms = dvi.separable_terms(lagrangian)
+    else:
+        terms = dvi.LagrangianTerm(lagrangian)
     energy = lambda t, y, args: dvi.energy(lagrangian, t, y[0], y[1])
     if adaptive:
         controller = dfx.PIDController(rtol=setting, atol=setting)

@@ -130,3 +130,12 @@ def symplecticity_defect(terms, solver, y0, h=0.2):
     n = flat.shape[0] // 2
     j = jnp.block([[jnp.zeros((n, n)), jnp.eye(n)], [-jnp.eye(n), jnp.zeros((n, n))]])
     return float(jnp.max(jnp.abs(m.T @ j @ m - j)))
+
+
+def terms_for(lagrangian, solver):
+    """The terms `solver` takes for `lagrangian`: the partitioned pair for solvers of
+    that structure (StormerVerlet, SemiImplicitEuler, compositions of them), else the
+    Lagrangian term."""
+    if isinstance(solver.term_structure, tuple):
+        return dvi.separable_terms(lagrangian)
+    return dvi.LagrangianTerm(lagrangian)

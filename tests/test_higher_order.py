@@ -23,20 +23,14 @@ from .helpers import (
     Pendulum,
     reference,
     symplecticity_defect,
+    terms_for,
 )
-
-
-def _terms(lagrangian, solver):
-    base = solver.base if isinstance(solver, dvi.Composition) else solver
-    if isinstance(base, dvi.StormerVerlet):
-        return dvi.separable_terms(lagrangian)
-    return dvi.LagrangianTerm(lagrangian)
 
 
 @eqx.filter_jit
 def _final(lagrangian, solver, y0, t1, dt0):
     sol = dfx.diffeqsolve(
-        _terms(lagrangian, solver), solver, 0.0, t1, dt0, y0, max_steps=1024
+        terms_for(lagrangian, solver), solver, 0.0, t1, dt0, y0, max_steps=1024
     )
     return jax.tree.map(lambda x: x[-1], sol.ys)
 
@@ -209,7 +203,7 @@ def test_jit_vmap_grad(solver):
     def q_final(g, q0):
         lagrangian = Pendulum(g=g)
         sol = dfx.diffeqsolve(
-            _terms(lagrangian, solver), solver, 0.0, 2.0, 0.1, (q0, jnp.array(0.0))
+            terms_for(lagrangian, solver), solver, 0.0, 2.0, 0.1, (q0, jnp.array(0.0))
         )
         return sol.ys[0][-1]
 

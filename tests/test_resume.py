@@ -5,7 +5,7 @@ import diffrax_vi as dvi
 import jax.numpy as jnp
 import pytest
 
-from .helpers import Duffing, max_abs_diff
+from .helpers import Duffing, max_abs_diff, terms_for
 
 
 SOLVERS = [
@@ -18,11 +18,7 @@ SOLVERS = [
 
 
 def _solve(solver, t0, t1, y0, **kwargs):
-    terms = (
-        dvi.separable_terms(Duffing())
-        if isinstance(solver, dvi.StormerVerlet)
-        else dvi.LagrangianTerm(Duffing())
-    )
+    terms = terms_for(Duffing(), solver)
     return dfx.diffeqsolve(terms, solver, t0, t1, 0.05, y0, **kwargs)
 
 

@@ -19,6 +19,7 @@ from .helpers import (
     reference,
     stiffening,
     symplecticity_defect,
+    terms_for,
 )
 
 
@@ -43,16 +44,10 @@ def _forced(t, q, v, args):
 
 # Each entry: (name, lagrangian, solver, whether to hand StormerVerlet partitioned
 # terms). Shared so that compiled solves are reused across tests.
-def _terms(lagrangian, solver):
-    if isinstance(solver, dvi.StormerVerlet | dfx.SemiImplicitEuler):
-        return dvi.separable_terms(lagrangian)
-    return dvi.LagrangianTerm(lagrangian)
-
-
 @eqx.filter_jit
 def _final(lagrangian, solver, y0, t0, t1, dt0, args=None):
     sol = dfx.diffeqsolve(
-        _terms(lagrangian, solver), solver, t0, t1, dt0, y0, args, max_steps=512
+        terms_for(lagrangian, solver), solver, t0, t1, dt0, y0, args, max_steps=512
     )
     return jax.tree.map(lambda x: x[-1], sol.ys)
 
@@ -134,7 +129,7 @@ def test_trapezoidal_separable_is_stormer_verlet():
 )
 def test_symplectic_step(lagrangian, solver):
     y0 = (jnp.array([0.4, -0.7]), jnp.array([0.3, 0.5]))
-    defect = symplecticity_defect(_terms(lagrangian, solver), solver, y0)
+    defect = symplecticity_defect(terms_for(lagrangian, solver), solver, y0)
     assert defect < 1e-13
 
 
@@ -198,7 +193,7 @@ def test_runge_kutta_energy_drifts_on_same_steps():
 def test_noether_angular_momentum(lagrangian, solver):
     y0 = (jnp.array([1.0, 0.0]), jnp.array([0.0, 0.8]))
     sol = dfx.diffeqsolve(
-        _terms(lagrangian, solver),
+        terms_for(lagrangian, solver),
         solver,
         0.0,
         200.0,
@@ -252,7 +247,7 @@ def test_vmap_equals_loop(name, solver):
 def _q_final(g, solver, adjoint):
     lagrangian = Pendulum(g=g)
     sol = dfx.diffeqsolve(
-        _terms(lagrangian, solver),
+        terms_for(lagrangian, solver),
         solver,
         0.0,
         2.0,
@@ -375,7 +370,7 @@ def test_float32_preserves_dtype_and_is_accurate():
 
 def _solve(lagrangian, solver, y0, **kwargs):
     return dfx.diffeqsolve(
-        _terms(lagrangian, solver), solver, 0.0, 1.0, 0.1, y0, **kwargs
+        terms_for(lagrangian, solver), solver, 0.0, 1.0, 0.1, y0, **kwargs
     )
 
 
