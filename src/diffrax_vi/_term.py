@@ -103,7 +103,7 @@ class _SeparableForce(eqx.Module):
 
 
 def separable_terms(
-    lagrangian: AbstractSeparableLagrangian,
+    lagrangian: AbstractLagrangian,
 ) -> tuple[dfx.ODETerm, dfx.ODETerm]:
     r"""Hamilton's equations of a separable Lagrangian as diffrax's partitioned pair
     `(ODETerm(dq/dt = M^{-1} p), ODETerm(dp/dt = -dV/dq))`, the calling convention of
@@ -116,6 +116,10 @@ def separable_terms(
     **Returns:**
 
     A pair of `diffrax.ODETerm`s for `y = (q, p)`.
+
+    **Raises:**
+
+    `ValueError` if the Lagrangian is not separable.
     """
     if not isinstance(lagrangian, AbstractSeparableLagrangian):
         raise ValueError(

@@ -1,7 +1,46 @@
-"""Ready systems for studies: a Lagrangian, a default state and what it conserves."""
+"""Ready systems for studies: a Lagrangian, a default state, what it conserves and,
+where known, its exact solution."""
 
+from ._chaotic import (
+    double_pendulum as double_pendulum,
+    DoublePendulumLagrangian as DoublePendulumLagrangian,
+    henon_heiles as henon_heiles,
+    HenonHeilesLagrangian as HenonHeilesLagrangian,
+)
+from ._fpu import fpu as fpu, FPULagrangian as FPULagrangian
 from ._kepler import kepler as kepler, KeplerLagrangian as KeplerLagrangian
+from ._learned import (
+    fit_potential as fit_potential,
+    learned as learned,
+    LearnedLagrangian as LearnedLagrangian,
+)
+from ._one_dof import (
+    duffing as duffing,
+    DuffingLagrangian as DuffingLagrangian,
+    falling_particle as falling_particle,
+    FallingParticleLagrangian as FallingParticleLagrangian,
+    oscillator as oscillator,
+    OscillatorLagrangian as OscillatorLagrangian,
+    pendulum as pendulum,
+    PendulumLagrangian as PendulumLagrangian,
+)
 from ._scene import Scene as Scene
+from ._solar import (
+    NBodyLagrangian as NBodyLagrangian,
+    outer_solar_system as outer_solar_system,
+)
 
 
-SCENES = {"kepler": kepler}
+# Name -> a function making the scene with its default parameters.
+SCENES = {
+    "kepler": kepler,
+    "falling_particle": falling_particle,
+    "oscillator": oscillator,
+    "duffing": duffing,
+    "pendulum": pendulum,
+    "double_pendulum": double_pendulum,
+    "henon_heiles": henon_heiles,
+    "fpu": fpu,
+    "outer_solar_system": outer_solar_system,
+    "learned": learned,
+}

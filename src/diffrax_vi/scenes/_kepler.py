@@ -1,6 +1,7 @@
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from .._lagrangian import AbstractSeparableLagrangian
@@ -25,20 +26,35 @@ def _angular_momentum(t, y, args):
 def kepler(eccentricity: float = 0.6) -> Scene:
     r"""The Kepler problem started at pericentre with eccentricity `e` (Hairer, Lubich
     and Wanner, *Geometric Numerical Integration*, I.2.3):
-    $q_0 = (1 - e, 0)$, $p_0 = (0, \sqrt{(1 + e)/(1 - e)})$. Period $2\pi$; energy
-    $-1/2$ and angular momentum $\sqrt{1 - e^2}$ are conserved.
+    $q_0 = (1 - e, 0)$, $p_0 = (0, \sqrt{(1 + e)/(1 - e)})$. Semi-major axis 1, period
+    $2\pi$; energy $-1/2$ and angular momentum $\sqrt{1 - e^2}$ are conserved. The
+    exact solution solves Kepler's equation $E - e\sin E = t$ by Newton's method.
     """
     if not 0 <= eccentricity < 1:
         raise ValueError(
             f"Kepler orbits are bounded for eccentricity in [0, 1); got {eccentricity}."
         )
     e = eccentricity
-    q0 = jnp.array([1 - e, 0.0])
-    p0 = jnp.array([0.0, math.sqrt((1 + e) / (1 - e))])
+    b = math.sqrt(1 - e**2)
+
+    def exact(t):
+        mean = jnp.mod(t, 2 * math.pi)
+        anomaly = jax.lax.fori_loop(
+            0,
+            60,
+            lambda _, x: x - (x - e * jnp.sin(x) - mean) / (1 - e * jnp.cos(x)),
+            mean + e * jnp.sin(mean),
+        )
+        rate = 1 / (1 - e * jnp.cos(anomaly))
+        q = jnp.stack([jnp.cos(anomaly) - e, b * jnp.sin(anomaly)], axis=-1)
+        p = jnp.stack([-jnp.sin(anomaly) * rate, b * jnp.cos(anomaly) * rate], axis=-1)
+        return q, p
+
     return Scene(
         name="kepler",
         lagrangian=KeplerLagrangian(),
-        y0=(q0, p0),
+        y0=(jnp.array([1 - e, 0.0]), jnp.array([0.0, math.sqrt((1 + e) / (1 - e))])),
         period=2 * math.pi,
         invariants={"angular_momentum": _angular_momentum},
+        exact=exact,
     )

@@ -1,24 +1,30 @@
 from collections.abc import Callable
 
 import equinox as eqx
-from jaxtyping import Array, PyTree
+import jax.numpy as jnp
+import jax.random as jr
+import jax.tree_util as jtu
+from jaxtyping import Array, PRNGKeyArray, PyTree
 
 from .._lagrangian import AbstractLagrangian, energy
 
 
 class Scene(eqx.Module):
-    """A ready system: a Lagrangian, a default initial state, its time scale and the
-    quantities its flow conserves.
+    """A ready system: a Lagrangian, a default initial state, its time scale, the
+    quantities its flow conserves and, where one is known, its exact solution.
 
     **Fields:**
 
     - `name`: a short name, as used by the command line.
     - `lagrangian`: an [`diffrax_vi.AbstractLagrangian`][].
     - `y0`: the default initial state `(q0, p0)`.
-    - `period`: the natural time scale (a period, where the motion is periodic).
-    - `invariants`: extra conserved quantities, `name -> fn(t, y, args) -> scalar`;
+    - `period`: the natural time scale (the period, where the motion is periodic). A
+        study's step is `period / steps_per_period`.
+    - `invariants`: extra conserved quantities, `name -> fn(t, y, args) -> array`;
         the energy is always conserved for a time-independent Lagrangian and is added
         by [`diffrax_vi.scenes.Scene.conserved`][].
+    - `exact`: the exact solution from `y0`, `fn(t) -> (q, p)`, or `None` where none
+        is known in closed form.
     """
 
     name: str = eqx.field(static=True)
@@ -26,12 +32,39 @@ class Scene(eqx.Module):
     y0: tuple[PyTree[Array], PyTree[Array]]
     period: float = eqx.field(static=True)
     invariants: dict[str, Callable] = eqx.field(static=True, default_factory=dict)
+    exact: Callable | None = eqx.field(static=True, default=None)
 
     def conserved(self) -> dict[str, Callable]:
-        """Every conserved quantity, energy first, as `fn(t, y, args) -> scalar`."""
+        """Every conserved quantity, energy first, as `fn(t, y, args) -> array`."""
         lagrangian = self.lagrangian
 
         def _energy(t, y, args):
             return energy(lagrangian, t, y[0], y[1], args)
 
         return {"energy": _energy, **self.invariants}
+
+    def perturbed(
+        self, key: PRNGKeyArray, n: int, spread: float = 1e-3
+    ) -> tuple[PyTree[Array], PyTree[Array]]:
+        """`n` initial states near `y0`, for ensembles: each leaf of `y0` plus
+        Gaussian noise of standard deviation `spread * (1 + |leaf|)`. The first member
+        is `y0` itself. Returns `y0`'s structure with a leading axis of size `n`."""
+        leaves, treedef = jtu.tree_flatten(self.y0)
+        keys = jr.split(key, len(leaves))
+
+        def perturb(k, x):
+            x = jnp.asarray(x)
+            noise = (
+                jr.normal(k, (n, *x.shape), x.dtype) * (spread * (1 + jnp.abs(x)))[None]
+            )
+            return (x[None] + noise).at[0].set(x)
+
+        return jtu.tree_unflatten(treedef, list(map(perturb, keys, leaves)))
+
+
+def agm(a: float, b: float) -> float:
+    """The arithmetic–geometric mean, for the closed-form periods
+    (`K(k) = pi / (2 agm(1, sqrt(1 - k^2)))`)."""
+    for _ in range(60):
+        a, b = (a + b) / 2, (a * b) ** 0.5
+    return a

@@ -1,78 +1,32 @@
-import csv
 import dataclasses
-import json
 import pathlib
-import time
 from collections.abc import Sequence
 
 import diffrax as dfx
-import equinox as eqx
-import jax
 import jax.numpy as jnp
+import jax.random as jr
 import numpy as np
 
-from .._solver import (
-    Composition,
-    GaussVPRK,
-    LinearizedVI,
-    LobattoVPRK,
-    MidpointVI,
-    StormerVerlet,
-    TrapezoidalVI,
-)
-from .._term import LagrangianTerm, separable_terms
 from ..scenes import Scene
-
-
-# Name -> a function making the solver.
-SOLVERS = {
-    "MidpointVI": MidpointVI,
-    "TrapezoidalVI": TrapezoidalVI,
-    "StormerVerlet": StormerVerlet,
-    "GaussVPRK2": lambda: GaussVPRK(2),
-    "GaussVPRK3": lambda: GaussVPRK(3),
-    "LobattoVPRK3": lambda: LobattoVPRK(3),
-    "Yoshida4": lambda: Composition(StormerVerlet(), "yoshida4"),
-    "KahanLi6": lambda: Composition(StormerVerlet(), "kahan_li6"),
-    "KahanLi8": lambda: Composition(StormerVerlet(), "kahan_li8"),
-    "LinearizedVI": lambda: LinearizedVI(velocity="centered"),
-    "SemiImplicitEuler": dfx.SemiImplicitEuler,
-    "Tsit5": dfx.Tsit5,
-    "Dopri5": dfx.Dopri5,
-    "Dopri8": dfx.Dopri8,
-}
-
-
-def make_solver(name: str) -> dfx.AbstractSolver:
-    """A solver by name: one of `diffrax_vi.study.SOLVERS`."""
-    try:
-        return SOLVERS[name]()
-    except KeyError:
-        raise ValueError(
-            f"Unknown solver {name!r}. Choose from: {', '.join(SOLVERS)}."
-        ) from None
-
-
-def _terms(scene: Scene, solver: dfx.AbstractSolver):
-    # Partitioned solvers (StormerVerlet, SemiImplicitEuler) take Hamilton's equations
-    # as a pair of terms; everything else takes the Lagrangian term.
-    if isinstance(solver.term_structure, tuple):
-        return separable_terms(scene.lagrangian)
-    return LagrangianTerm(scene.lagrangian)
+from ._methods import as_method, Method
+from ._run import cast_scene, run, shard_ensemble
+from ._table import markdown_table, write_records
 
 
 @dataclasses.dataclass(frozen=True)
 class DriftRun:
-    """One solver's run in a drift study.
+    """One method's run in a drift study.
 
     **Fields:**
 
-    - `solver`: the solver's name.
-    - `steps`: the number of steps taken.
-    - `wall_time`: seconds for the solve, after compilation.
-    - `result`: `"successful"` or diffrax's message for the failure.
+    - `solver`: the method's name.
+    - `steps`: the number of steps taken (the most taken by any ensemble member).
+    - `wall_time`: seconds for the solve (of the whole ensemble), after compilation.
+    - `result`: `"successful"`, diffrax's message for the failure, or how many
+        ensemble members failed.
     - `ts`: the times at which the invariants were saved.
-    - `errors`: invariant name -> `|I(t) - I(0)|` at `ts`.
+    - `errors`: invariant name -> `|I(t) - I(0)|` at `ts` (the largest component of
+        a vector invariant; the worst ensemble member).
     """
 
     solver: str
@@ -89,12 +43,13 @@ class DriftRun:
 @dataclasses.dataclass(frozen=True)
 class DriftStudy:
     """The result of [`diffrax_vi.study.drift`][]: one
-    [`diffrax_vi.study.DriftRun`][] per solver."""
+    [`diffrax_vi.study.DriftRun`][] per method."""
 
     scene: str
     periods: int | float
     steps_per_period: int
     dtype: str
+    members: int
     runs: list[DriftRun]
 
     @property
@@ -116,143 +71,129 @@ class DriftStudy:
 
     def table(self) -> str:
         """The summary as a Markdown table."""
-        rows = self.rows()
-        header = list(rows[0])
-        lines = [
-            "| " + " | ".join(header) + " |",
-            "|" + "|".join("---" for _ in header) + "|",
-        ]
-        for row in rows:
-            cells = [
-                f"{v:.3e}"
-                if isinstance(v, float) and k != "wall_time_s"
-                else (f"{v:.3f}" if isinstance(v, float) else str(v))
-                for k, v in row.items()
-            ]
-            lines.append("| " + " | ".join(cells) + " |")
-        return "\n".join(lines)
+        return markdown_table(self.rows())
 
     def write(self, out: str | pathlib.Path) -> list[pathlib.Path]:
         """Write `drift.csv` (summary), `drift.json` (summary and series) and, if
         matplotlib is installed, `drift_<invariant>.png` into the folder `out`."""
         out = pathlib.Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        rows = self.rows()
-        with open(out / "drift.csv", "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-        series = {
-            run.solver: dict(
-                ts=run.ts.tolist(), **{k: v.tolist() for k, v in run.errors.items()}
-            )
-            for run in self.runs
-        }
-        meta = dict(
+        written = write_records(
+            out,
+            "drift",
+            self.rows(),
             scene=self.scene,
             periods=self.periods,
             steps_per_period=self.steps_per_period,
             dtype=self.dtype,
+            members=self.members,
+            series={
+                run.solver: dict(
+                    ts=run.ts.tolist(),
+                    **{k: v.tolist() for k, v in run.errors.items()},
+                )
+                for run in self.runs
+            },
         )
-        with open(out / "drift.json", "w") as f:
-            json.dump(dict(meta, summary=rows, series=series), f)
-        written = [out / "drift.csv", out / "drift.json"]
         try:
             from ._plot import plot_drift
         except ImportError:
             return written
         for name in self.invariants:
-            path = out / f"drift_{name}.png"
-            plot_drift(self, name, path)
-            written.append(path)
+            written.append(plot_drift(self, name, out / f"drift_{name}.png"))
         return written
 
 
 def drift(
     scene: Scene,
-    solvers: Sequence[str | dfx.AbstractSolver],
+    solvers: Sequence[str | dfx.AbstractSolver | Method],
     *,
     periods: int | float = 1000,
     steps_per_period: int = 200,
     n_save: int = 1000,
     dtype=jnp.float64,
+    rtol: float = 1e-8,
+    ensemble: int | None = None,
+    spread: float = 1e-3,
+    seed: int = 0,
+    shard: bool = True,
     progress: bool = False,
 ) -> DriftStudy:
-    """Run each solver on the same scene, the same step and the same number of steps,
-    and record the error in every conserved quantity against time.
+    """Run each method on the same scene over the same horizon, and record the error
+    of every conserved quantity against time.
 
-    The invariants are streamed through `diffrax.SaveAt(ts=..., fn=...)` at `n_save`
-    times that fall on step boundaries, so memory is O(`n_save`), not O(steps), and no
-    interpolation error enters. Wall time is measured on a second, compiled, call.
+    Fixed-step methods all take the same step, `period / steps_per_period`, and the
+    invariants are saved at `n_save` times on step boundaries, so no interpolation
+    error enters. Adaptive methods (`"Tsit5+PID"`) start at that step and are saved
+    by their dense output. Either way the invariants are streamed through
+    `diffrax.SaveAt(ts=..., fn=...)`: memory is O(`n_save`), not O(steps).
 
     **Arguments:**
 
     - `scene`: a [`diffrax_vi.scenes.Scene`][].
-    - `solvers`: names from `diffrax_vi.study.SOLVERS`, or solver instances.
+    - `solvers`: names from `diffrax_vi.study.SOLVERS` (with the suffix `+PID` for a
+        `PIDController` at tolerance `rtol`), solver instances, or
+        [`diffrax_vi.study.Method`][]s.
     - `periods`: horizon, in the scene's periods.
-    - `steps_per_period`: fixed steps per period, the same for every solver.
-    - `n_save`: how many times to record the invariants at.
-    - `dtype`: the floating dtype of the state and the times.
+    - `steps_per_period`: fixed steps per period.
+    - `n_save`: how many times to record the invariants at; must divide the number
+        of steps.
+    - `dtype`: the floating dtype of the state, the Lagrangian's parameters and the
+        times.
+    - `rtol`: the tolerance of `+PID` methods.
+    - `ensemble`: if given, run this many initial states near the scene's
+        ([`diffrax_vi.scenes.Scene.perturbed`][] with `spread` and `seed`) at once,
+        with `jax.vmap`; the errors reported are the worst member's.
+    - `shard`: split the ensemble across all devices with `jax.sharding` (on one
+        device this does nothing).
     - `progress`: show diffrax's tqdm progress meter (the timed run then includes its
         overhead).
 
     **Returns:**
 
     A [`diffrax_vi.study.DriftStudy`][].
+
+    **Raises:**
+
+    `ValueError` for unknown solver names, an `n_save` that does not divide the
+    number of steps, or an ensemble that cannot be split evenly across the devices.
     """
+    methods = [as_method(spec, rtol) for spec in solvers]
     n_steps = int(round(periods * steps_per_period))
     if n_save < 1 or n_steps % n_save != 0:
         raise ValueError(
             f"n_save={n_save} must divide the number of steps {n_steps} so that the "
             "invariants are saved on step boundaries."
         )
-    t1 = jnp.asarray(scene.period * periods, dtype=dtype)
-    t0 = jnp.zeros((), dtype=dtype)
-    ts = jnp.linspace(t0, t1, n_save + 1, dtype=dtype)
-    y0 = jax.tree.map(lambda x: jnp.asarray(x, dtype=dtype), scene.y0)
-    conserved = scene.conserved()
-
-    def invariants(t, y, args):
-        return {name: fn(t, y, args) for name, fn in conserved.items()}
-
+    scene = cast_scene(scene, dtype)
+    t1 = scene.period * periods
+    ts = jnp.linspace(0, t1, n_save + 1, dtype=dtype)
+    if ensemble is None:
+        y0 = scene.y0
+    else:
+        y0 = scene.perturbed(jr.key(seed), ensemble, spread)
+        if shard:
+            y0 = shard_ensemble(y0, ensemble)
     runs = []
-    for spec in solvers:
-        solver = make_solver(spec) if isinstance(spec, str) else spec
-        name = spec if isinstance(spec, str) else type(spec).__name__
-        terms = _terms(scene, solver)
-
-        @eqx.filter_jit
-        def solve(y0, meter):
-            return dfx.diffeqsolve(
-                terms,
-                solver,
-                t0,
-                t1,
-                (t1 - t0) / n_steps,
-                y0,
-                saveat=dfx.SaveAt(ts=ts, fn=invariants),
-                max_steps=n_steps + 1,
-                throw=False,
-                progress_meter=meter,
-            )
-
-        meter = dfx.TqdmProgressMeter() if progress else dfx.NoProgressMeter()
-        jax.block_until_ready(solve(y0, meter))
-        start = time.perf_counter()
-        sol = jax.block_until_ready(solve(y0, meter))
-        wall_time = time.perf_counter() - start
-        # In the scene's order (energy first), not the sorted order of a JAX dict.
-        values = {k: np.asarray(sol.ys[k], dtype=np.float64) for k in conserved}
+    for method in methods:
+        outcome = run(
+            scene,
+            method,
+            t1=t1,
+            dt0=t1 / n_steps,
+            n_steps=n_steps,
+            ts=ts,
+            y0=y0,
+            ensemble=ensemble is not None,
+            progress=progress,
+        )
         runs.append(
             DriftRun(
-                solver=name,
-                steps=int(sol.stats["num_steps"]),
-                wall_time=wall_time,
-                result="successful"
-                if sol.result == dfx.RESULTS.successful
-                else str(sol.result),
-                ts=np.asarray(ts, dtype=np.float64),
-                errors={k: np.abs(v - v[0]) for k, v in values.items()},
+                solver=method.name,
+                steps=outcome.steps,
+                wall_time=outcome.wall_time,
+                result=outcome.result,
+                ts=np.asarray(ts, np.float64),
+                errors=outcome.errors(),
             )
         )
     return DriftStudy(
@@ -260,5 +201,6 @@ def drift(
         periods=periods,
         steps_per_period=steps_per_period,
         dtype=jnp.dtype(dtype).name,
+        members=1 if ensemble is None else ensemble,
         runs=runs,
     )

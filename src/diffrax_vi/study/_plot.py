@@ -5,21 +5,52 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+import numpy as np
 
 
-def plot_drift(study, invariant: str, path: str | pathlib.Path) -> None:
+# Errors are plotted on log axes; an exact zero (energy of a quadratic Lagrangian
+# under a variational integrator) is shown at this floor rather than dropped.
+FLOOR = 1e-17
+
+
+def plot_drift(study, invariant: str, path: pathlib.Path) -> pathlib.Path:
     """Log–log plot of one invariant's error against time, a line per solver."""
     fig, ax = plt.subplots(figsize=(7, 4.5), layout="constrained")
-    floor = 1e-17
     for run in study.runs:
         ts, err = run.ts[1:], run.errors[invariant][1:]
-        ax.loglog(ts, err + floor, label=f"{run.solver} ({run.wall_time:.2f} s)")
+        ax.loglog(ts, err + FLOOR, label=f"{run.solver} ({run.wall_time:.2f} s)")
     ax.set_xlabel("time")
     ax.set_ylabel(f"|{invariant}(t) - {invariant}(0)|")
+    members = f", worst of {study.members}" if study.members > 1 else ""
     ax.set_title(
-        f"{study.scene}: {study.steps_per_period} steps per period, {study.dtype}"
+        f"{study.scene}: {study.steps_per_period} steps per period, "
+        f"{study.dtype}{members}"
     )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+    return path
+
+
+def plot_work_precision(study, path: pathlib.Path) -> pathlib.Path:
+    """Energy error and global error against wall time, a line per solver."""
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
+    for key, ax in zip(("max_energy_error", "global_error"), axes):
+        for solver in dict.fromkeys(r["solver"] for r in study.records):
+            points = sorted(
+                (r["wall_time_s"], r[key] + FLOOR)
+                for r in study.records
+                if r["solver"] == solver and np.isfinite(r[key])
+            )
+            if points:
+                style = "--" if solver.startswith(("Tsit5", "Dopri")) else "-"
+                ax.loglog(*zip(*points), style + "o", ms=3, label=solver)
+        ax.set_xlabel("wall time (s)")
+        ax.set_ylabel(key.replace("_", " "))
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"{study.scene}: {study.periods:g} periods, {study.dtype}")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

@@ -1,0 +1,135 @@
+import dataclasses
+import math
+import pathlib
+from collections.abc import Sequence
+
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, PyTree
+
+from .._term import LagrangianTerm
+from ..scenes import Scene
+from ._methods import as_method, Method
+from ._run import cast_scene, run
+from ._table import markdown_table, write_records
+
+
+def reference_state(scene: Scene, t1: float) -> PyTree[Array]:
+    """The state at `t1` from the scene's default `y0`: its exact solution where it has
+    one, else Dopri8 with a `PIDController` at `rtol = atol = 1e-13` (use float64;
+    for a chaotic scene this is only meaningful over a few Lyapunov times)."""
+    if scene.exact is not None:
+        return scene.exact(jnp.asarray(t1))
+    sol = dfx.diffeqsolve(
+        LagrangianTerm(scene.lagrangian),
+        dfx.Dopri8(),
+        0.0,
+        t1,
+        scene.period / 100,
+        scene.y0,
+        stepsize_controller=dfx.PIDController(rtol=1e-13, atol=1e-13),
+        max_steps=10_000_000,
+    )
+    return jax.tree.map(lambda x: x[-1], sol.ys)
+
+
+@dataclasses.dataclass(frozen=True)
+class WorkPrecision:
+    """The result of [`diffrax_vi.study.work_precision`][]: one record per method and
+    setting (steps per period for fixed steps, tolerance for `+PID` methods), with
+    its wall time, steps, largest energy error over the horizon and global error at
+    its end."""
+
+    scene: str
+    periods: int | float
+    dtype: str
+    records: list[dict]
+
+    def table(self) -> str:
+        return markdown_table(self.records)
+
+    def write(self, out: str | pathlib.Path) -> list[pathlib.Path]:
+        """Write `work_precision.csv`, `work_precision.json` and, if matplotlib is
+        installed, `work_precision.png` into the folder `out`."""
+        out = pathlib.Path(out)
+        written = write_records(
+            out,
+            "work_precision",
+            self.records,
+            scene=self.scene,
+            periods=self.periods,
+            dtype=self.dtype,
+        )
+        try:
+            from ._plot import plot_work_precision
+        except ImportError:
+            return written
+        written.append(plot_work_precision(self, out / "work_precision.png"))
+        return written
+
+
+def work_precision(
+    scene: Scene,
+    solvers: Sequence[str | dfx.AbstractSolver | Method],
+    *,
+    periods: int | float = 100,
+    steps_per_period: Sequence[int] = (50, 100, 200, 400),
+    rtols: Sequence[float] = (1e-6, 1e-8, 1e-10, 1e-12),
+    n_save: int = 100,
+    dtype=jnp.float64,
+) -> WorkPrecision:
+    """Wall time against accuracy: each fixed-step method at every
+    `steps_per_period`, each `+PID` method at every tolerance in `rtols`, over the
+    same horizon.
+
+    Accuracy is measured two ways: the largest energy error at `n_save` times, and
+    the global error (largest component of `|y(t_1) - y_\\mathrm{ref}(t_1)|`) against
+    [`diffrax_vi.study.reference_state`][]. Failed runs are kept, with `NaN` errors
+    and the failure in `result`.
+
+    **Arguments:** as [`diffrax_vi.study.drift`][], plus the grids `steps_per_period`
+    and `rtols`.
+    """
+    t1 = scene.period * periods
+    exact = jax.tree.map(np.asarray, reference_state(scene, t1))
+    scene = cast_scene(scene, dtype)
+    records = []
+    for spec in solvers:
+        base = as_method(spec)
+        adaptive = base.rtol is not None
+        for setting in rtols if adaptive else steps_per_period:
+            method = dataclasses.replace(base, rtol=setting) if adaptive else base
+            spp = steps_per_period[0] if adaptive else setting
+            n_steps = int(round(periods * spp))
+            saves = math.gcd(n_save, n_steps)
+            outcome = run(
+                scene,
+                method,
+                t1=t1,
+                dt0=t1 / n_steps,
+                n_steps=n_steps,
+                ts=jnp.linspace(0, t1, saves + 1, dtype=dtype),
+                y0=scene.y0,
+            )
+            ok = outcome.result == "successful"
+            global_error = max(
+                float(np.max(np.abs(a[0] - b)))
+                for a, b in zip(jax.tree.leaves(outcome.final), jax.tree.leaves(exact))
+            )
+            records.append(
+                dict(
+                    solver=method.name,
+                    steps_per_period=None if adaptive else setting,
+                    rtol=setting if adaptive else None,
+                    steps=outcome.steps,
+                    wall_time_s=outcome.wall_time,
+                    result=outcome.result,
+                    max_energy_error=float(outcome.errors()["energy"].max())
+                    if ok
+                    else math.nan,
+                    global_error=global_error if ok else math.nan,
+                )
+            )
+    return WorkPrecision(scene.name, periods, jnp.dtype(dtype).name, records)

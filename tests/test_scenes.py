@@ -1,0 +1,166 @@
+import math
+
+import diffrax as dfx
+import diffrax_vi as dvi
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+from diffrax_vi import scenes
+from diffrax_vi.study import reference_state
+
+from .helpers import max_abs_diff, reference
+
+
+# Every scene but the learned one (which trains, and is tested on its own below).
+NAMES = [n for n in scenes.SCENES if n != "learned"]
+
+
+def _conserved_along(scene, y):
+    return {k: np.asarray(f(0.0, y, None)) for k, f in scene.conserved().items()}
+
+
+@pytest.mark.parametrize("name", ["falling_particle", "oscillator", "kepler"])
+def test_exact_solutions_match_solve_ivp(name):
+    scene = scenes.SCENES[name]()
+    for t in (0.7 * scene.period, 3.3 * scene.period):
+        assert (
+            max_abs_diff(scene.exact(t), reference(scene.lagrangian, scene.y0, t))
+            < 1e-9
+        )
+
+
+@pytest.mark.parametrize(
+    "scene", [scenes.pendulum(), scenes.duffing(), scenes.duffing(1.2)]
+)
+def test_closed_form_periods(scene):
+    # After one period (an elliptic integral, by the AGM) the orbit is back at y0;
+    # after half a period it is not.
+    assert (
+        max_abs_diff(reference(scene.lagrangian, scene.y0, scene.period), scene.y0)
+        < 1e-9
+    )
+    half = reference(scene.lagrangian, scene.y0, scene.period / 2)
+    assert max_abs_diff(half, scene.y0) > 0.1
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_conserved_quantities_are_conserved_by_solve_ivp(name):
+    scene = scenes.SCENES[name]()
+    y1 = reference(scene.lagrangian, scene.y0, 2.5 * scene.period)
+    before, after = _conserved_along(scene, scene.y0), _conserved_along(scene, y1)
+    for k in before:
+        scale = 1 + np.max(np.abs(before[k]))
+        assert np.max(np.abs(after[k] - before[k])) < 1e-10 * scale, k
+    # And the state has moved, so this was no empty check.
+    assert max_abs_diff(y1, scene.y0) > 1e-3
+
+
+@pytest.mark.parametrize(
+    "name", ["double_pendulum", "henon_heiles", "fpu", "outer_solar_system"]
+)
+def test_numerical_reference_matches_solve_ivp(name):
+    scene = scenes.SCENES[name]()
+    t1 = 2 * scene.period
+    ours = reference_state(scene, t1)
+    theirs = reference(scene.lagrangian, scene.y0, t1)
+    scale = max(1.0, max(float(jnp.max(jnp.abs(x))) for x in jax.tree.leaves(theirs)))
+    assert max_abs_diff(ours, theirs) < 1e-9 * scale
+
+
+def test_fpu_initial_data_and_stiff_frequency():
+    omega = 1e3
+    scene = scenes.fpu(omega)
+    q0, p0 = scene.y0
+    s = 1 / math.sqrt(2)
+    # HLW I.5: x_{0,1} = 1, x_{1,1} = 1/omega, y_{0,1} = y_{1,1} = 1.
+    assert np.allclose(s * (q0[1] + q0[0]), 1) and np.allclose(
+        s * (q0[1] - q0[0]), 1 / omega
+    )
+    assert np.allclose(s * (p0[1] + p0[0]), 1) and np.allclose(s * (p0[1] - p0[0]), 1)
+    # The stiff springs: Hessian eigenvalues omega^2 (three of them) at q = 0.
+    hessian = jax.hessian(lambda q: scene.lagrangian.potential(0.0, q, None))(
+        jnp.zeros(6)
+    )
+    eig = np.sort(np.linalg.eigvalsh(np.asarray(hessian)))
+    assert np.allclose(eig[-3:], omega**2) and np.allclose(eig[:3], 0)
+
+
+def test_solar_system_data():
+    scene = scenes.outer_solar_system()
+    q0, p0 = scene.y0
+    assert q0.shape == p0.shape == (6, 3)
+    # Jupiter's period from its initial state (two-body with the Sun): 4332.6 days.
+    g = 2.95912208286e-4
+    m = scene.lagrangian.mass[:, 0]
+    r = float(jnp.linalg.norm(q0[1]))
+    v2 = float(jnp.sum((p0[1] / m[1]) ** 2))
+    a = 1 / (2 / r - v2 / (g * (m[0] + m[1])))
+    period = 2 * np.pi * np.sqrt(a**3 / (g * (m[0] + m[1])))
+    assert abs(period - scene.period) / scene.period < 0.01
+
+
+def test_scene_parameter_errors():
+    with pytest.raises(ValueError, match="eccentricity"):
+        scenes.kepler(1.0)
+    with pytest.raises(ValueError, match="amplitude"):
+        scenes.pendulum(4.0)
+    with pytest.raises(ValueError, match="q0"):
+        scenes.duffing(2.0)
+    with pytest.raises(ValueError, match="omega"):
+        scenes.fpu(omega=-1.0)
+
+
+def test_perturbed(getkey):
+    scene = scenes.kepler()
+    q, p = scene.perturbed(getkey(), 64, spread=1e-2)
+    assert q.shape == p.shape == (64, 2)
+    assert np.array_equal(q[0], scene.y0[0]) and np.array_equal(p[0], scene.y0[1])
+    deviation = np.std(np.asarray(q[1:, 0] - scene.y0[0][0]))
+    assert 0.5e-2 < deviation / (1 + 0.4) < 2e-2
+
+
+def test_learned_lagrangian():
+    """A small MLP potential trained through MidpointVI reproduces the pendulum on an
+    amplitude it never saw, and, being a Lagrangian, keeps its own energy bounded."""
+    scene = scenes.learned()
+    truth = scenes.pendulum(1.2)
+    y0 = truth.y0
+    t1 = 2 * truth.period
+    learned = dfx.diffeqsolve(
+        dvi.LagrangianTerm(scene.lagrangian),
+        dvi.MidpointVI(),
+        0.0,
+        t1,
+        0.05,
+        y0,
+        max_steps=1000,
+    )
+    exact = reference(truth.lagrangian, y0, t1)
+    untrained = scenes.LearnedLagrangian(jr.key(0))
+    before = dfx.diffeqsolve(
+        dvi.LagrangianTerm(untrained),
+        dvi.MidpointVI(),
+        0.0,
+        t1,
+        0.05,
+        y0,
+        max_steps=1000,
+    )
+    error = max_abs_diff(jax.tree.map(lambda x: x[-1], learned.ys), exact)
+    assert error < 1e-2 < max_abs_diff(jax.tree.map(lambda x: x[-1], before.ys), exact)
+    energy = jax.vmap(lambda q, p: dvi.energy(scene.lagrangian, 0.0, q, p))
+    long = dfx.diffeqsolve(
+        dvi.LagrangianTerm(scene.lagrangian),
+        dvi.MidpointVI(),
+        0.0,
+        100 * truth.period,
+        truth.period / 50,
+        y0,
+        saveat=dfx.SaveAt(steps=True),
+        max_steps=5000,
+    )
+    e = np.asarray(energy(*long.ys))
+    e0 = float(dvi.energy(scene.lagrangian, 0.0, *y0))
+    assert np.max(np.abs(e - e0)) < 1e-3
