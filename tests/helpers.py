@@ -139,3 +139,17 @@ def terms_for(lagrangian, solver):
     if isinstance(solver.term_structure, tuple):
         return dvi.separable_terms(lagrangian)
     return dvi.LagrangianTerm(lagrangian)
+
+
+# Every solver of the package, for tests that must hold for all of them.
+ALL_SOLVERS = [
+    ("MidpointVI", dvi.MidpointVI()),
+    ("TrapezoidalVI", dvi.TrapezoidalVI()),
+    ("StormerVerlet", dvi.StormerVerlet()),
+    ("GaussVPRK(2)", dvi.GaussVPRK(2)),
+    ("LobattoVPRK(3)", dvi.LobattoVPRK(3)),
+    ("yoshida4(StormerVerlet)", dvi.Composition(dvi.StormerVerlet(), "yoshida4")),
+    ("yoshida4(MidpointVI)", dvi.Composition(dvi.MidpointVI(), "yoshida4")),
+    ("LinearizedVI", dvi.LinearizedVI()),
+    ("LinearizedVI(centered)", dvi.LinearizedVI(velocity="centered")),
+]

@@ -14,6 +14,9 @@ SOLVERS = [
     ("StormerVerlet", dvi.StormerVerlet()),
     ("LinearizedVI", dvi.LinearizedVI()),
     ("LinearizedVI-centered", dvi.LinearizedVI(velocity="centered")),
+    ("GaussVPRK(2)", dvi.GaussVPRK(2)),
+    ("LobattoVPRK(3)", dvi.LobattoVPRK(3)),
+    ("yoshida4(MidpointVI)", dvi.Composition(dvi.MidpointVI(), "yoshida4")),
 ]
 
 

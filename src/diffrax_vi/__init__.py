@@ -38,6 +38,11 @@ from ._solver import (
     TrapezoidalVI as TrapezoidalVI,
     VPRKTableau as VPRKTableau,
 )
+from ._stability import (
+    oscillator_step_matrix as oscillator_step_matrix,
+    spectral_radius as spectral_radius,
+    stability_limit as stability_limit,
+)
 from ._term import LagrangianTerm as LagrangianTerm, separable_terms as separable_terms
 
 

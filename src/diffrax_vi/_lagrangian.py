@@ -122,7 +122,13 @@ class SeparableLagrangian(AbstractSeparableLagrangian):
     mass: PyTree[ArrayLike] = 1.0
 
     def potential(self, t: RealScalarLike, q: Q, args: Args) -> Scalar:
-        return jnp.asarray(self.potential_fn(t, q, args))
+        value = jnp.asarray(self.potential_fn(t, q, args))
+        if value.shape != ():
+            raise ValueError(
+                f"The potential must return a scalar; got shape {value.shape}. Sum "
+                "over degrees of freedom, e.g. `jnp.sum(0.5 * q**2)`."
+            )
+        return value
 
 
 class TangentLift(AbstractLagrangian):

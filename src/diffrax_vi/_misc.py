@@ -44,11 +44,16 @@ def default_root_finder(dtype: np.dtype) -> optx.AbstractRootFinder:
     return optx.Newton(rtol=tol, atol=tol)
 
 
+def tree_max_abs(tree: PyTree) -> Array:
+    """The largest `|x|` over every leaf."""
+    leaves = [jnp.max(jnp.abs(x), initial=0.0) for x in jtu.tree_leaves(tree)]
+    return jnp.max(jnp.stack(leaves))
+
+
 def momentum_scale(p: PyTree) -> Array:
     """`1 + max|p|`, the scale that momentum residuals are divided by before a root
     find. Held constant under differentiation: it does not move the root."""
-    leaves = [jnp.max(jnp.abs(x), initial=0.0) for x in jtu.tree_leaves(p)]
-    return jax.lax.stop_gradient(1 + jnp.max(jnp.stack(leaves)))
+    return jax.lax.stop_gradient(1 + tree_max_abs(p))
 
 
 def all_finite(tree: PyTree) -> Bool[Array, ""]:

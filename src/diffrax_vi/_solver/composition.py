@@ -157,7 +157,8 @@ class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
         args: Args,
     ) -> PyTree:
         gammas, _ = composition_coefficients(self.scheme)
-        return self.base.init(terms, t0, t0 + gammas[0] * (t1 - t0), y0, args)
+        # Python floats are weakly typed: they keep float32 times float32.
+        return self.base.init(terms, t0, t0 + float(gammas[0]) * (t1 - t0), y0, args)
 
     def step(
         self,
@@ -171,7 +172,7 @@ class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
     ):
         gammas, _ = composition_coefficients(self.scheme)
         fractions = np.concatenate([[0.0], np.cumsum(gammas)])
-        ts = [t0 + f * (t1 - t0) for f in fractions]
+        ts = [t0 + float(f) * (t1 - t0) for f in fractions]
         ts[-1] = t1  # exactly, not up to the rounding of the cumulative sum
         y, state, result = y0, solver_state, dfx.RESULTS.successful
         for k in range(len(gammas)):

@@ -17,9 +17,12 @@ from .._discrete import (
     MidpointRule,
 )
 from .._lagrangian import AbstractLagrangian
+from .._term import hamilton_vector_field
 from .._misc import (
     all_finite,
     default_root_finder,
+    momentum_scale,
+    tree_max_abs,
     split_state,
     state_dtype,
     unvmap_any,
@@ -95,6 +98,7 @@ class LinearizedVI(AbstractVariationalSolver):
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 16
     compensated: bool = True
+    max_del_residual: float | None = 0.1
 
     def __check_init__(self):
         if self.velocity not in ("forward", "centered"):
@@ -117,9 +121,12 @@ class LinearizedVI(AbstractVariationalSolver):
         root_finder = self.root_finder or default_root_finder(dtype)
         qs = []
         t = tp0
-        v_guess = jtu.tree_map(jnp.zeros_like, p)
+        # The start's velocity: the first Newton guess, and a check that the Legendre
+        # map can be inverted there at all.
+        (v_guess, _), result = hamilton_vector_field(lagrangian, tp0, q, p, args)
+        ok = result == dfx.RESULTS.successful
         for _ in range(self._n_past()):
-            dq, dp, v, _ = discrete_hamiltonian_map(
+            dq, dp, v, result = discrete_hamiltonian_map(
                 self.discrete_lagrangian,
                 lagrangian,
                 t,
@@ -136,6 +143,10 @@ class LinearizedVI(AbstractVariationalSolver):
             qs.append(q)
             t = t - h
             v_guess = v
+            ok = ok & (result == dfx.RESULTS.successful)
+        # A history that could not be built (singular d2L/dv2, no root) is poisoned,
+        # so the first step reports it instead of linearizing about garbage.
+        qs = jtu.tree_map(lambda x: jnp.where(ok, x, jnp.nan), qs)
         compensation = initial_compensation(y0[0], self.compensated)
         return tuple(qs), tuple(h for _ in qs), compensation
 
@@ -181,7 +192,7 @@ class LinearizedVI(AbstractVariationalSolver):
                 self.discrete_lagrangian, lagrangian, ts, (a, b, c), args
             )
 
-        _, linear = jax.linearize(residual, x, y, z)
+        drift, linear = jax.linearize(residual, x, y, z)
         if self.velocity == "forward":
             u_x = _scale(1 / h_xy, _sub(y, x))
             u_y = _scale(1 / h_yz, _sub(z, y))
@@ -208,6 +219,15 @@ class LinearizedVI(AbstractVariationalSolver):
         _, p1 = average_grads(self.discrete_lagrangian, lagrangian, tp0, h, q0, v, args)
         y1 = (q1, p1)
         result = step_result(dfx.RESULTS.promote(sol.result), y0, y1, all_finite(qs))
+        if self.max_del_residual is not None:
+            # The triple this step linearized about has left the DEL manifold S: the
+            # linearization no longer follows the variational integrator.
+            off = tree_max_abs(drift) > self.max_del_residual * momentum_scale(y0[1])
+            result = dfx.RESULTS.where(
+                (result == dfx.RESULTS.successful) & off,
+                dfx.RESULTS.nonlinear_divergence,
+                result,
+            )
         dense_info = hermite_dense_info(lagrangian, tp0, tp1, h, y0, y1, args, v)
         new_qs = (q0,) + qs[:-1]
         new_hs = (h,) + hs[:-1]
@@ -229,4 +249,12 @@ LinearizedVI.__init__.__doc__ = """**Arguments:**
     [`diffrax_vi.MidpointVI`][].
 - `compensated`: compensated (Kahan) summation of the new positions (default). The
     momenta are recomputed each step, not summed.
+- `max_del_residual`: the step fails with `RESULTS.nonlinear_divergence` once the
+    discrete Euler–Lagrange residual of the triple it linearizes about exceeds this
+    multiple of `1 + max|p|` (default 0.1): the triples have left the manifold $S$
+    and the method no longer follows the variational integrator (it has no Newton
+    iteration whose failure would say so). Healthy runs stay below 0.005; the
+    divergences of the centered variant's parasitic mode (Kepler, the double
+    pendulum) and blow-ups of the forward variant cross it within a few steps.
+    `None` turns the check off. See the [stability page](../stability.md).
 """

@@ -125,7 +125,7 @@ def drift(
     invariants are saved at `n_save` times on step boundaries, so no interpolation
     error enters. Adaptive methods (`"Tsit5+PID"`) start at that step and are saved
     by their dense output. Either way the invariants are streamed through
-    `diffrax.SaveAt(ts=..., fn=...)`: memory is O(`n_save`), not O(steps).
+    `diffrax.SaveAt(fn=...)`: memory is O(`n_save`), not O(steps).
 
     **Arguments:**
 
@@ -166,7 +166,6 @@ def drift(
         )
     scene = cast_scene(scene, dtype)
     t1 = scene.period * periods
-    ts = jnp.linspace(0, t1, n_save + 1, dtype=dtype)
     if ensemble is None:
         y0 = scene.y0
     else:
@@ -179,9 +178,9 @@ def drift(
             scene,
             method,
             t1=t1,
-            dt0=t1 / n_steps,
             n_steps=n_steps,
-            ts=ts,
+            n_save=n_save,
+            dtype=dtype,
             y0=y0,
             ensemble=ensemble is not None,
             progress=progress,
@@ -192,7 +191,7 @@ def drift(
                 steps=outcome.steps,
                 wall_time=outcome.wall_time,
                 result=outcome.result,
-                ts=np.asarray(ts, np.float64),
+                ts=np.linspace(0, t1, n_save + 1),
                 errors=outcome.errors(),
             )
         )

@@ -103,14 +103,13 @@ def work_precision(
             method = dataclasses.replace(base, rtol=setting) if adaptive else base
             spp = steps_per_period[0] if adaptive else setting
             n_steps = int(round(periods * spp))
-            saves = math.gcd(n_save, n_steps)
             outcome = run(
                 scene,
                 method,
                 t1=t1,
-                dt0=t1 / n_steps,
                 n_steps=n_steps,
-                ts=jnp.linspace(0, t1, saves + 1, dtype=dtype),
+                n_save=math.gcd(n_save, n_steps),
+                dtype=dtype,
                 y0=scene.y0,
             )
             ok = outcome.result == "successful"

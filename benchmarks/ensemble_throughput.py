@@ -1,0 +1,90 @@
+"""Ensemble throughput: trajectories x steps per second for `jax.vmap` over many
+initial conditions, through the study API (`drift(..., ensemble=n)`), on whatever
+devices JAX sees (CPU here; a GPU when one is available; several devices shard the
+ensemble with `jax.sharding`).
+
+For each solver and ensemble size it prints the throughput and its ratio to the
+single-trajectory run, i.e. how much of the batch dimension the hardware turns into
+speed. Also a bare `jax.vmap` of a `jax.lax.scan` of the kick-drift-kick update, the
+floor for StormerVerlet without compensated summation ("StormerVerlet(plain)").
+
+Run: `python benchmarks/ensemble_throughput.py [--sizes 1,64,1024,4096]`.
+"""
+
+import argparse
+import time
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+from diffrax_vi import StormerVerlet  # noqa: E402
+from diffrax_vi.scenes import kepler  # noqa: E402
+from diffrax_vi.study import drift, Method  # noqa: E402
+
+
+# The bare scan has no compensated summation; this is its like-for-like solver.
+EXTRA = {"StormerVerlet(plain)": Method("StormerVerlet(plain)", StormerVerlet(False))}
+
+
+def bare_scan_throughput(scene, n, steps, h):
+    force = jax.grad(lambda q: -scene.lagrangian.potential(0.0, q, None))
+
+    def trajectory(y0):
+        def step(carry, _):
+            q, p = carry
+            p = p + 0.5 * h * force(q)
+            q = q + h * p
+            return (q, p + 0.5 * h * force(q)), None
+
+        return jax.lax.scan(step, y0, length=steps)[0]
+
+    solve = jax.jit(jax.vmap(trajectory))
+    y0s = scene.perturbed(jax.random.key(0), n)
+    jax.block_until_ready(solve(y0s))
+    start = time.perf_counter()
+    jax.block_until_ready(solve(y0s))
+    return n * steps / (time.perf_counter() - start)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--sizes", default="1,64,1024,4096")
+    parser.add_argument("--steps", type=int, default=20000)
+    parser.add_argument(
+        "--solvers", default="StormerVerlet(plain),StormerVerlet,MidpointVI,Tsit5"
+    )
+    args = parser.parse_args()
+    sizes = [int(s) for s in args.sizes.split(",")]
+    scene = kepler()
+    periods = args.steps / 200
+    print(f"devices: {jax.devices()}")
+    print(f"Kepler e=0.6, {args.steps} steps (200 per orbit), float64")
+    print(f"{'solver':>14} {'members':>8} {'traj*steps/s':>14} {'vs 1 member':>12}")
+    for name in args.solvers.split(","):
+        single = None
+        for n in sizes:
+            study = drift(
+                scene,
+                [EXTRA.get(name, name)],
+                periods=periods,
+                steps_per_period=200,
+                n_save=10,
+                ensemble=None if n == 1 else n,
+            )
+            run = study.runs[0]
+            throughput = n * run.steps / run.wall_time
+            single = single or throughput
+            print(
+                f"{name:>14} {n:>8} {throughput:>14.3e} {throughput / single:>11.1f}x"
+                + ("" if run.result == "successful" else f"  ({run.result})")
+            )
+    h = scene.period / 200
+    for n in sizes:
+        rate = bare_scan_throughput(scene, n, args.steps, h)
+        print(f"{'bare scan':>14} {n:>8} {rate:>14.3e}")
+
+
+if __name__ == "__main__":
+    main()

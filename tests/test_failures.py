@@ -1,0 +1,165 @@
+"""Every solver fails loudly: a ValueError at trace time, or a non-successful RESULTS
+at run time that keeps the steps before the failure."""
+
+import diffrax as dfx
+import diffrax_vi as dvi
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from .helpers import ALL_SOLVERS, Pendulum, terms_for
+
+
+IMPLICIT = [
+    (n, s)
+    for n, s in ALL_SOLVERS
+    if n in ("MidpointVI", "GaussVPRK(2)", "LobattoVPRK(3)", "yoshida4(MidpointVI)")
+]
+
+
+def _solve(lagrangian, solver, y0, t1=1.0, dt=0.1, **kwargs):
+    return dfx.diffeqsolve(
+        terms_for(lagrangian, solver), solver, 0.0, t1, dt, y0, **kwargs
+    )
+
+
+@pytest.mark.parametrize("name,solver", ALL_SOLVERS)
+def test_non_finite_initial_condition(name, solver):
+    for y0 in (
+        (jnp.array(jnp.nan), jnp.array(0.0)),
+        (jnp.array(1.0), jnp.array(jnp.inf)),
+    ):
+        sol = _solve(Pendulum(), solver, y0, throw=False)
+        assert sol.result == dfx.RESULTS.nonfinite, name
+        with pytest.raises(eqx.EquinoxRuntimeError, match="Nonfinite"):
+            _solve(Pendulum(), solver, y0)
+
+
+@pytest.mark.parametrize("name,solver", ALL_SOLVERS)
+def test_non_finite_parameter(name, solver):
+    sol = _solve(
+        Pendulum(g=jnp.array(jnp.nan)),
+        solver,
+        (jnp.array(1.0), jnp.array(0.0)),
+        throw=False,
+    )
+    assert sol.result != dfx.RESULTS.successful
+
+
+@pytest.mark.parametrize("name,solver", ALL_SOLVERS)
+def test_structural_misuse_is_a_value_error(name, solver):
+    # Partitioned solvers take any pair of terms, as diffrax.SemiImplicitEuler does,
+    # so only solvers of a LagrangianTerm know that q and p must match.
+    if not isinstance(solver.term_structure, tuple):
+        with pytest.raises(ValueError, match="same PyTree structure|pair"):
+            _solve(Pendulum(), solver, (jnp.ones(2), (jnp.ones(2),)))
+        with pytest.raises(ValueError, match="matching shapes"):
+            _solve(Pendulum(), solver, (jnp.ones(2), jnp.ones(3)))
+    with pytest.raises(ValueError, match="scalar"):
+        _solve(
+            dvi.SeparableLagrangian(lambda t, q, args: 0.5 * q**2),
+            solver,
+            (jnp.ones(2), jnp.ones(2)),
+        )
+    wrong = dfx.ODETerm(lambda t, y, args: y)
+    with pytest.raises(ValueError):
+        dfx.diffeqsolve(wrong, solver, 0.0, 1.0, 0.1, (jnp.ones(()), jnp.ones(())))
+
+
+@pytest.mark.parametrize("name,solver", IMPLICIT)
+def test_newton_failure_keeps_the_steps_before_it(name, solver):
+    """V = -q^4 from rest at q = 1 blows up at t ~ 1.31: at a fixed step the implicit
+    equation soon has no root near the guess. The failure is reported, and the steps
+    before it are kept and accurate."""
+    blowup = dvi.SeparableLagrangian(lambda t, q, args: -(q**4))
+    y0 = (jnp.array(1.0), jnp.array(0.0))
+    sol = _solve(
+        blowup, solver, y0, t1=3.0, dt=0.1, throw=False, saveat=dfx.SaveAt(steps=True)
+    )
+    assert sol.result == dfx.RESULTS.nonlinear_max_steps_reached
+    done = int(sol.stats["num_accepted_steps"])
+    q = np.asarray(sol.ys[0])
+    assert 5 <= done < 15 and np.isfinite(q[:done]).all()
+    # Near the start the motion is q = 1 + 2 t^2 + O(t^4).
+    assert abs(q[0] - 1.02) < 1e-3
+    with pytest.raises(eqx.EquinoxRuntimeError, match="nonlinear solver"):
+        _solve(blowup, solver, y0, t1=3.0, dt=0.1)
+
+
+@pytest.mark.parametrize(
+    "name,solver", IMPLICIT + [("TrapezoidalVI", dvi.TrapezoidalVI())]
+)
+def test_degenerate_lagrangian_is_singular(name, solver):
+    degenerate = dvi.Lagrangian(
+        lambda t, q, v, args: 0.5 * jnp.sum(v) ** 2 - jnp.sum(q**4)
+    )
+    y0 = (jnp.array([0.1, 0.2]), jnp.array([1.0, 1.0]))
+    sol = _solve(degenerate, solver, y0, throw=False)
+    assert sol.result == dfx.RESULTS.singular
+
+
+def test_linearized_on_a_degenerate_lagrangian_is_singular():
+    # The starting history is built by backward variational steps, whose Newton
+    # iteration cannot invert a singular d2L/dv2: reported, not linearized about.
+    degenerate = dvi.Lagrangian(
+        lambda t, q, v, args: 0.5 * jnp.sum(v) ** 2 - jnp.sum(q**4)
+    )
+    y0 = (jnp.array([0.1, 0.2]), jnp.array([1.0, 1.0]))
+    sol = _solve(degenerate, dvi.LinearizedVI(), y0, throw=False)
+    assert sol.result == dfx.RESULTS.singular
+
+
+def test_linearized_divergence_is_reported_not_silent():
+    """The linearized methods have no Newton iteration to fail: past a finite-time
+    blow-up (V = -q^4 from rest at q = 1, singular at t ~ 1.31) the unguarded method
+    returns finite garbage as success. The DEL-residual guard fails the solve instead,
+    keeping the steps before it."""
+    blowup = dvi.SeparableLagrangian(lambda t, q, args: -(q**4))
+    y0 = (jnp.array(1.0), jnp.array(0.0))
+    kwargs = dict(t1=3.0, dt=0.1, throw=False, saveat=dfx.SaveAt(steps=True))
+    unguarded = _solve(blowup, dvi.LinearizedVI(max_del_residual=None), y0, **kwargs)
+    assert unguarded.result == dfx.RESULTS.successful  # the silent failure
+    assert int(unguarded.stats["num_accepted_steps"]) == 30
+    assert np.isfinite(np.asarray(unguarded.ys[0])[:30]).all()
+    guarded = _solve(blowup, dvi.LinearizedVI(), y0, **kwargs)
+    assert guarded.result == dfx.RESULTS.nonlinear_divergence
+    done = int(guarded.stats["num_accepted_steps"])
+    q = np.asarray(guarded.ys[0])
+    assert 5 <= done < 15 and np.isfinite(q[:done]).all()
+    assert np.allclose(q[:done], np.asarray(unguarded.ys[0])[:done])
+
+
+def test_centered_linearized_on_kepler_fails_instead_of_exploding():
+    from diffrax_vi.scenes import kepler
+    from diffrax_vi.study import drift
+
+    study = drift(
+        kepler(),
+        [
+            dvi.LinearizedVI(velocity="centered", max_del_residual=None),
+            dvi.LinearizedVI(velocity="centered"),
+        ],
+        periods=20,
+        steps_per_period=200,
+        n_save=20,
+    )
+    silent, guarded = study.runs
+    assert silent.result == "successful" and silent.max_error("energy") > 1e3
+    assert guarded.result == "Nonlinear solve diverged."
+    assert guarded.steps < 1000
+
+
+def test_healthy_linearized_runs_pass_the_guard():
+    from diffrax_vi.scenes import duffing, henon_heiles, pendulum
+    from diffrax_vi.study import drift
+
+    for scene, spp in ((duffing(), 8), (pendulum(), 12), (henon_heiles(), 12)):
+        run = drift(
+            scene,
+            [dvi.LinearizedVI(velocity="centered")],
+            periods=50,
+            steps_per_period=spp,
+            n_save=10,
+        ).runs[0]
+        assert run.result == "successful" and run.max_error("energy") < 0.05
