@@ -403,3 +403,29 @@ def test_double_pendulum_diverges_but_keeps_its_energy():
     half = drift.shape[1] // 2
     assert drift.max() < 5e-3
     assert drift[:, half:].max() < 2 * drift[:, :half].max()
+
+
+def test_the_study_flags_blow_ups_that_solvers_report_as_success():
+    """Past its limit (omega h = 2.5 > 2) StormerVerlet's values grow like 3.96^n but
+    stay finite for 500 steps, and the solve is successful: the study's growth column
+    shows it. Tsit5 past its limit overflows to NaN without diffrax noticing (fixed
+    steps are not checked); the study reports it as non-finite."""
+    from diffrax_vi.scenes import oscillator
+    from diffrax_vi.study import drift
+
+    study = drift(
+        oscillator(),
+        ["StormerVerlet", "MidpointVI"],
+        periods=20,
+        steps_per_period=3,
+        n_save=20,  # omega h = 2.09
+    )
+    unstable, implicit = study.runs
+    assert unstable.result == "successful" and unstable.growth() > 1e6
+    assert implicit.result == "successful" and implicit.max_error("energy") < 1e-13
+    stable = drift(
+        oscillator(), ["StormerVerlet"], periods=20, steps_per_period=20, n_save=400
+    )
+    assert stable.runs[0].growth() < 1.5
+    rk = drift(oscillator(), ["Tsit5"], periods=1000, steps_per_period=2, n_save=20)
+    assert rk.runs[0].result.startswith("Nonfinite")

@@ -17,16 +17,16 @@ from .._discrete import (
     MidpointRule,
 )
 from .._lagrangian import AbstractLagrangian
-from .._term import hamilton_vector_field
 from .._misc import (
     all_finite,
     default_root_finder,
     momentum_scale,
-    tree_max_abs,
     split_state,
     state_dtype,
+    tree_max_abs,
     unvmap_any,
 )
+from .._term import hamilton_vector_field
 from .base import (
     AbstractVariationalSolver,
     compensated_add,

@@ -39,6 +39,17 @@ class DriftRun:
     def max_error(self, name: str) -> float:
         return float(np.max(self.errors[name]))
 
+    def growth(self, name: str = "energy") -> float:
+        """The largest error over the last tenth of the saves over that of the first
+        tenth: about 1 for a bounded error, 10 for one growing linearly in time, and
+        huge for a blow-up (past a stability limit the values stay finite, and the
+        solve successful, until they overflow)."""
+        err = self.errors[name][1:]
+        k = max(1, len(err) // 10)
+        # An error that is exactly zero at first (a quadratic energy) is round-off.
+        eps = float(np.finfo(np.float64).eps)
+        return (float(np.max(err[-k:])) + eps) / (float(np.max(err[:k])) + eps)
+
 
 @dataclasses.dataclass(frozen=True)
 class DriftStudy:
@@ -57,7 +68,8 @@ class DriftStudy:
         return list(self.runs[0].errors) if self.runs else []
 
     def rows(self) -> list[dict]:
-        """The summary table as a list of records."""
+        """The summary table as a list of records; `energy_growth` is
+        [`diffrax_vi.study.DriftRun.growth`][]."""
         return [
             dict(
                 solver=run.solver,
@@ -65,6 +77,7 @@ class DriftStudy:
                 wall_time_s=run.wall_time,
                 result=run.result,
                 **{f"max_{k}_error": run.max_error(k) for k in self.invariants},
+                energy_growth=run.growth("energy"),
             )
             for run in self.runs
         ]

@@ -9,6 +9,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, PyTree
 
+from .._misc import all_finite
 from ..scenes import Scene
 from ._methods import Method
 
@@ -126,7 +127,15 @@ def run(
         # `max_steps = n_steps + 1` leaves one padded slot when saving every step.
         invariants = jax.tree.map(lambda x: x[: n_save + 1], invariants)
         final = jax.tree.map(lambda x: x[-1], final)
-        return invariants, final, sol.stats["num_steps"], sol.result
+        # diffrax's Runge-Kutta solvers do not check fixed steps for NaN: a blow-up
+        # would otherwise be tabled as a success.
+        finite = all_finite((invariants, final))
+        result = dfx.RESULTS.where(
+            (sol.result == dfx.RESULTS.successful) & ~finite,
+            dfx.RESULTS.nonfinite,
+            sol.result,
+        )
+        return invariants, final, sol.stats["num_steps"], result
 
     solve = eqx.filter_jit(jax.vmap(solve) if ensemble else solve)
     jax.block_until_ready(solve(y0))
