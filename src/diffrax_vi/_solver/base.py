@@ -90,15 +90,37 @@ def unwrap_term(terms: dfx.AbstractTerm, solver: str) -> tuple[LagrangianTerm, A
     return terms, direction
 
 
+# A substep of a composition: the fraction `gamma` of the step from `T0` to `T1`.
+Substep = tuple[float, RealScalarLike, RealScalarLike]
+
+
+def step_control(
+    term: dfx.AbstractTerm,
+    t0: RealScalarLike,
+    t1: RealScalarLike,
+    substep: Substep | None = None,
+) -> PyTree:
+    """`term.contr(t0, t1)`; for a substep of a composition, `gamma` times the control
+    of the whole step. The difference `t1 - t0` of two sub-times near a large `t`
+    carries their rounding, an ulp of `t`, into the substep's size: at t = 2^30 that
+    breaks kahan_li8's order conditions at 4e-5 and its energy error grows from
+    2.5e-12 to 2.3e-8 in ten Kepler orbits."""
+    if substep is None:
+        return term.contr(t0, t1)
+    gamma, step_t0, step_t1 = substep
+    return jtu.tree_map(lambda c: gamma * c, term.contr(step_t0, step_t1))
+
+
 def step_times(
     terms: dfx.AbstractTerm,
     direction: Array,
     t0: RealScalarLike,
     t1: RealScalarLike,
     dtype: np.dtype,
+    substep: Substep | None = None,
 ) -> tuple[Array, Array, Array]:
     """Physical start and end times and the signed step, in the state's dtype."""
-    h = jnp.asarray(terms.contr(t0, t1), dtype=dtype)
+    h = jnp.asarray(step_control(terms, t0, t1, substep), dtype=dtype)
     tp0 = jnp.asarray(direction * t0, dtype=dtype)
     tp1 = jnp.asarray(direction * t1, dtype=dtype)
     return tp0, tp1, h
@@ -180,11 +202,12 @@ def implicit_vi_step(
     args: Args,
     solver_state: _VIState,
     made_jump: bool | Bool[ArrayLike, ""],
+    substep: Substep | None = None,
 ):
     term, direction = unwrap_term(terms, solver)
     q0, p0 = split_state(y0)
     dtype = state_dtype(y0)
-    tp0, tp1, h = step_times(terms, direction, t0, t1, dtype)
+    tp0, tp1, h = step_times(terms, direction, t0, t1, dtype, substep)
     if root_finder is None:
         root_finder = default_root_finder(dtype)
     (v_prev, v_prev2), compensation = solver_state

@@ -177,7 +177,15 @@ class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
         y, state, result = y0, solver_state, dfx.RESULTS.successful
         for k in range(len(gammas)):
             y, _, _, state, sub_result = self.base.step(
-                terms, ts[k], ts[k + 1], y, args, state, made_jump if k == 0 else False
+                terms,
+                ts[k],
+                ts[k + 1],
+                y,
+                args,
+                state,
+                made_jump if k == 0 else False,
+                # The substep's size from the whole step's, not from ts[k + 1] - ts[k].
+                substep=(float(gammas[k]), t0, t1),
             )
             result = dfx.RESULTS.where(
                 result == dfx.RESULTS.successful, sub_result, result

@@ -10,6 +10,7 @@ from .base import (
     AbstractVariationalSolver,
     implicit_vi_init,
     implicit_vi_step,
+    Substep,
 )
 
 
@@ -79,6 +80,8 @@ class MidpointVI(
         args: Args,
         solver_state: PyTree,
         made_jump: bool | Bool[ArrayLike, ""],
+        *,
+        substep: Substep | None = None,
     ):
         return implicit_vi_step(
             MidpointRule(),
@@ -92,6 +95,7 @@ class MidpointVI(
             args,
             solver_state,
             made_jump,
+            substep,
         )
 
     def func(self, terms, t0, y0, args):

@@ -13,6 +13,8 @@ from .base import (
     AbstractSymplecticSolver,
     compensated_add,
     initial_compensation,
+    step_control,
+    Substep,
 )
 
 
@@ -113,6 +115,8 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractSymmetricSolver):
         args: Args,
         solver_state: _SolverState,
         made_jump: bool | Bool[ArrayLike, ""],
+        *,
+        substep: Substep | None = None,
     ) -> tuple[
         tuple[PyTree, PyTree], None, dict[str, PyTree], _SolverState, dfx.RESULTS
     ]:
@@ -125,8 +129,8 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractSymmetricSolver):
             lambda: _start_force(term_p, t0, y0, args),
             lambda: cached,
         )
-        control_q = term_q.contr(t0, t1)
-        control_p = term_p.contr(t0, t1)
+        control_q = step_control(term_q, t0, t1, substep)
+        control_p = step_control(term_p, t0, t1, substep)
         half_p = _half(control_p)
         kick0 = term_p.prod(g0, half_p)
         p_half = _add(p0, kick0)

@@ -13,6 +13,7 @@ from .base import (
     AbstractVariationalSolver,
     implicit_vi_init,
     implicit_vi_step,
+    Substep,
     unwrap_term,
 )
 from .stormer_verlet import StormerVerlet
@@ -91,11 +92,13 @@ class TrapezoidalVI(
         args: Args,
         solver_state: PyTree,
         made_jump: bool | Bool[ArrayLike, ""],
+        *,
+        substep: Substep | None = None,
     ):
         pair = _partitioned(terms)
         if pair is not None:
             return StormerVerlet(self.compensated).step(
-                pair, t0, t1, y0, args, solver_state, made_jump
+                pair, t0, t1, y0, args, solver_state, made_jump, substep=substep
             )
         return implicit_vi_step(
             TrapezoidalRule(),
@@ -109,6 +112,7 @@ class TrapezoidalVI(
             args,
             solver_state,
             made_jump,
+            substep,
         )
 
     def func(self, terms, t0, y0, args):

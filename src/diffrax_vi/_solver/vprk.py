@@ -29,6 +29,7 @@ from .base import (
     implicit_vi_init,
     step_result,
     step_times,
+    Substep,
     unwrap_term,
 )
 
@@ -168,13 +169,15 @@ class AbstractVPRK(
         args: Args,
         solver_state: PyTree,
         made_jump: bool | Bool[ArrayLike, ""],
+        *,
+        substep: Substep | None = None,
     ):
         name = type(self).__name__
         term, direction = unwrap_term(terms, name)
         lagrangian = term.lagrangian
         q0, p0 = split_state(y0)
         dtype = state_dtype(y0)
-        tp0, tp1, h = step_times(terms, direction, t0, t1, dtype)
+        tp0, tp1, h = step_times(terms, direction, t0, t1, dtype, substep)
         tableau = self.tableau()
         root_finder = self.root_finder or default_root_finder(dtype)
         stage_v_prev, compensation = solver_state
