@@ -155,11 +155,15 @@ def test_healthy_linearized_runs_pass_the_guard():
     from diffrax_vi.study import drift
 
     for scene, spp in ((duffing(), 8), (pendulum(), 12), (henon_heiles(), 12)):
-        run = drift(
+        linearized, midpoint = drift(
             scene,
-            [dvi.LinearizedVI(velocity="centered")],
+            [dvi.LinearizedVI(velocity="centered"), dvi.MidpointVI()],
             periods=50,
             steps_per_period=spp,
             n_save=10,
-        ).runs[0]
-        assert run.result == "successful" and run.max_error("energy") < 0.05
+        ).runs
+        assert linearized.result == "successful" and linearized.growth() < 1.5
+        # Second order like the midpoint VI it linearizes, with a larger constant
+        # (measured 3.5x, 3.4x and 4.7x at these coarse steps).
+        ratio = linearized.max_error("energy") / midpoint.max_error("energy")
+        assert 1 < ratio < 6

@@ -135,7 +135,10 @@ def _parser() -> argparse.ArgumentParser:
         "--steps-per-period", type=int, default=200, help="fixed steps per period"
     )
     drift.add_argument(
-        "--save", type=int, default=1000, help="number of times to record errors at"
+        "--save",
+        type=int,
+        default=1000,
+        help="number of intervals to record the largest errors over",
     )
     drift.add_argument(
         "--rtol", type=float, default=1e-8, help="tolerance of +PID solvers"

@@ -24,9 +24,10 @@ class DriftRun:
     - `wall_time`: seconds for the solve (of the whole ensemble), after compilation.
     - `result`: `"successful"`, diffrax's message for the failure, or how many
         ensemble members failed.
-    - `ts`: the times at which the invariants were saved.
-    - `errors`: invariant name -> `|I(t) - I(0)|` at `ts` (the largest component of
-        a vector invariant; the worst ensemble member).
+    - `ts`: the start and the ends of the `n_save` intervals.
+    - `errors`: invariant name -> the largest `|I(t) - I(0)|` over the steps in the
+        interval ending at each of `ts` (0 at the start; the largest component of a
+        vector invariant; the worst ensemble member; NaN after a failure).
     """
 
     solver: str
@@ -134,11 +135,12 @@ def drift(
     """Run each method on the same scene over the same horizon, and record the error
     of every conserved quantity against time.
 
-    Fixed-step methods all take the same step, `period / steps_per_period`, and the
-    invariants are saved at `n_save` times on step boundaries, so no interpolation
-    error enters. Adaptive methods (`"Tsit5+PID"`) start at that step and are saved
-    by their dense output. Either way the invariants are streamed through
-    `diffrax.SaveAt(fn=...)`: memory is O(`n_save`), not O(steps).
+    Fixed-step methods all take the same step, `period / steps_per_period`;
+    adaptive methods (`"Tsit5+PID"`) start at that step. The error of every
+    conserved quantity is taken after every step, and the study records its largest
+    value over each of `n_save` equal intervals (a sample every k-th step would alias
+    with the motion). The errors are streamed through `diffrax.SaveAt(fn=...)`:
+    memory is O(`n_save` + steps per interval), not O(steps).
 
     **Arguments:**
 
@@ -148,8 +150,9 @@ def drift(
         [`diffrax_vi.study.Method`][]s.
     - `periods`: horizon, in the scene's periods.
     - `steps_per_period`: fixed steps per period.
-    - `n_save`: how many times to record the invariants at; must divide the number
-        of steps.
+    - `n_save`: how many intervals to record the largest errors over; must divide
+        the number of steps. An adaptive method may take at most 4096 steps per
+        interval.
     - `dtype`: the floating dtype of the state, the Lagrangian's parameters and the
         times.
     - `rtol`: the tolerance of `+PID` methods.

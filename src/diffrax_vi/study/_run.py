@@ -18,9 +18,14 @@ from ._methods import Method
 class Outcome:
     """What one method's solve of one scene (or one ensemble of it) produced, as
     NumPy arrays with ensemble members along a leading axis (of size 1 for a single
-    solve)."""
+    solve).
 
-    invariants: dict[str, np.ndarray]
+    `max_errors[name][m, i]` is member `m`'s largest `|I(t) - I(0)|` of invariant
+    `name` (over the components of a vector invariant) over the steps in the `i`-th
+    interval between save times; index 0 is the start, where it is 0. After the
+    interval in which a solve failed, it is NaN."""
+
+    max_errors: dict[str, np.ndarray]
     final: PyTree[np.ndarray]
     steps: int
     wall_time: float
@@ -37,13 +42,9 @@ class Outcome:
         return f"{len(failed)} of {len(self.results)} members failed: {failed[0]}"
 
     def errors(self) -> dict[str, np.ndarray]:
-        """`|I(t) - I(0)|` per invariant at each save time: the largest over the
-        components of a vector invariant and over ensemble members."""
-        out = {}
-        for name, values in self.invariants.items():
-            err = np.abs(values - values[:, :1])
-            out[name] = err.reshape(*err.shape[:2], -1).max(axis=(0, 2))
-        return out
+        """The largest error of each invariant in each interval between save times,
+        over the ensemble members."""
+        return {name: err.max(axis=0) for name, err in self.max_errors.items()}
 
 
 def cast_scene(scene: Scene, dtype) -> Scene:
@@ -70,6 +71,11 @@ def shard_ensemble(y0s: PyTree[Array], members: int) -> PyTree[Array]:
     return jax.device_put(y0s, NamedSharding(mesh, PartitionSpec("ensemble")))
 
 
+# An adaptive method may take at most this many steps between two save times: the
+# per-interval buffer of invariant errors has this many rows.
+MAX_ADAPTIVE_STEPS_PER_SAVE = 4096
+
+
 def run(
     scene: Scene,
     method: Method,
@@ -82,69 +88,136 @@ def run(
     ensemble: bool = False,
     progress: bool = False,
 ) -> Outcome:
-    """Solve `scene` from `y0` with `method` to `t1`, streaming the conserved
-    quantities at `n_save + 1` equally spaced times through `SaveAt(fn=...)` and
-    keeping the final state. Fixed steps take exactly `n_steps` (which `n_save` must
-    divide) and save every `n_steps / n_save` steps; adaptive ones start at step
-    `t1 / n_steps` and save by interpolation. With `ensemble=True`, `y0` has a leading
-    axis of members and the solve is vmapped over it (and runs on every device `y0`
-    is sharded over). Wall time is of a second, compiled, call."""
+    """Solve `scene` from `y0` with `method` to `t1`, recording the largest error of
+    each conserved quantity over each of `n_save` equal intervals, and the final
+    state. Fixed steps take exactly `n_steps` (which `n_save` must divide); adaptive
+    ones start at step `t1 / n_steps` and take at most
+    `MAX_ADAPTIVE_STEPS_PER_SAVE` steps per interval. With `ensemble=True`, `y0` has a
+    leading axis of members and the solve is vmapped over it (and runs on every
+    device `y0` is sharded over). Wall time is of a second, compiled, call.
+
+    The errors are taken at every step, not sampled: a sample every k-th step
+    aliases with the motion (one save per period sees one phase of the orbit, and
+    misses the pendulum's peak energy error by a factor of 10^6). Each interval is
+    one `diffeqsolve` inside a `lax.scan`, resumed from the last one's solver and
+    controller state, whose steps stream their errors through `SaveAt(fn=...)`:
+    memory is O(`n_save` + steps per interval), not O(steps)."""
     conserved = scene.conserved()
-
-    def invariants(t, y, args):
-        return {k: f(t, y, args) for k, f in conserved.items()}
-
-    # Saving every k-th step costs nothing per step; `SaveAt(ts=...)` interpolates
-    # and costs ~0.25 us a step plus more per save time (diffrax 0.7), 10x the whole
-    # step of StormerVerlet on Kepler. Adaptive steps have no other choice.
-    if method.rtol is None:
-        every = dfx.SubSaveAt(t0=True, steps=n_steps // n_save, fn=invariants)
-        max_steps = n_steps + 1
-    else:
-        ts = jnp.linspace(0, t1, n_save + 1, dtype=dtype)
-        every = dfx.SubSaveAt(ts=ts, fn=invariants)
-        max_steps = 10_000_000
-    saveat = dfx.SaveAt(subs=[every, dfx.SubSaveAt(t1=True)])
     terms = method.terms(scene)
+    solver = method.solver
     controller = method.controller()
-    meter = dfx.TqdmProgressMeter() if progress else dfx.NoProgressMeter()
+    fixed = method.rtol is None
+    per_save = n_steps // n_save
+    max_steps = per_save if fixed else MAX_ADAPTIVE_STEPS_PER_SAVE
+    ts = jnp.linspace(0, t1, n_save + 1, dtype=dtype)
+    h = jnp.asarray(t1 / n_steps, dtype)
+    # Driven once per interval, so one bar for the whole run.
+    meter = (
+        dfx.TqdmProgressMeter(refresh_steps=1) if progress else dfx.NoProgressMeter()
+    )
 
     def solve(y0):
-        sol = dfx.diffeqsolve(
-            terms,
-            method.solver,
-            jnp.zeros((), dtype),
-            jnp.asarray(t1, dtype),
-            jnp.asarray(t1 / n_steps, dtype),
+        i0 = {k: f(ts[0], y0, None) for k, f in conserved.items()}
+
+        def error(y):
+            return {
+                k: jnp.max(jnp.abs(jnp.ravel(f(ts[0], y, None) - i0[k])))
+                for k, f in conserved.items()
+            }
+
+        saveat = dfx.SaveAt(
+            subs=[
+                dfx.SubSaveAt(steps=True, fn=lambda t, y, args: error(y)),
+                dfx.SubSaveAt(t1=True),
+            ],
+            solver_state=True,
+            controller_state=True,
+        )
+        solver_state = solver.init(terms, ts[0], ts[0] + h, y0, None)
+        if fixed:
+            controller_state = None
+        else:
+            error_order = solver.error_order(terms)
+            _, controller_state = controller.init(
+                terms, ts[0], ts[1], y0, h, None, solver.func, error_order
+            )
+
+        def interval(carry, t_span):
+            y, solver_state, controller_state, result, steps, meter_state = carry
+            if fixed:
+                # Step to t0 + j h and end exactly on the save time: a constant step
+                # summed in floating point would leave a last step of a few ulps.
+                grid = t_span[0] + h * jnp.arange(per_save, dtype=dtype)
+                step_to = dfx.StepTo(jnp.concatenate([grid, t_span[1:]]))
+            sol = dfx.diffeqsolve(
+                terms,
+                solver,
+                t_span[0],
+                t_span[1],
+                None,
+                y,
+                saveat=saveat,
+                stepsize_controller=step_to if fixed else controller,
+                solver_state=solver_state,
+                controller_state=controller_state,
+                max_steps=max_steps,
+                throw=False,
+            )
+            errors, final = sol.ys
+            n = sol.stats["num_steps"]
+            # Rejected steps are counted in `n` but not saved.
+            taken = jnp.arange(max_steps) < sol.stats["num_accepted_steps"]
+            errors = {k: jnp.max(jnp.where(taken, e, 0)) for k, e in errors.items()}
+            final = jax.tree.map(lambda x: x[-1], final)
+            ok = result == dfx.RESULTS.successful
+            # diffrax's Runge-Kutta solvers do not check fixed steps for NaN: a
+            # blow-up would otherwise be tabled as a success.
+            new = dfx.RESULTS.where(
+                (sol.result == dfx.RESULTS.successful) & ~all_finite((errors, final)),
+                dfx.RESULTS.nonfinite,
+                sol.result,
+            )
+            result = dfx.RESULTS.where(ok, new, result)
+            errors = jax.tree.map(lambda e: jnp.where(ok, e, jnp.nan), errors)
+            steps = steps + jnp.where(ok, n, 0)
+            meter_state = meter.step(
+                meter_state, (t_span[1] - ts[0]) / (ts[-1] - ts[0])
+            )
+            carry = (
+                final,
+                sol.solver_state,
+                None if fixed else sol.controller_state,
+                result,
+                steps,
+                meter_state,
+            )
+            return carry, errors
+
+        carry = (
             y0,
-            saveat=saveat,
-            stepsize_controller=controller,
-            max_steps=max_steps,
-            throw=False,
-            progress_meter=meter,
+            solver_state,
+            controller_state,
+            dfx.RESULTS.successful,
+            jnp.zeros((), int),
+            meter.init(),
         )
-        invariants, final = sol.ys
-        # `max_steps = n_steps + 1` leaves one padded slot when saving every step.
-        invariants = jax.tree.map(lambda x: x[: n_save + 1], invariants)
-        final = jax.tree.map(lambda x: x[-1], final)
-        # diffrax's Runge-Kutta solvers do not check fixed steps for NaN: a blow-up
-        # would otherwise be tabled as a success.
-        finite = all_finite((invariants, final))
-        result = dfx.RESULTS.where(
-            (sol.result == dfx.RESULTS.successful) & ~finite,
-            dfx.RESULTS.nonfinite,
-            sol.result,
+        spans = jnp.stack([ts[:-1], ts[1:]], axis=1)
+        (final, *_, result, steps, meter_state), errors = jax.lax.scan(
+            interval, carry, spans
         )
-        return invariants, final, sol.stats["num_steps"], result
+        meter.close(meter_state)
+        zero = jax.tree.map(lambda e: jnp.zeros((1,), e.dtype), errors)
+        errors = jax.tree.map(lambda z, e: jnp.concatenate([z, e]), zero, errors)
+        return errors, final, steps, result
 
     solve = eqx.filter_jit(jax.vmap(solve) if ensemble else solve)
     jax.block_until_ready(solve(y0))
     start = time.perf_counter()
-    invariants, final, steps, result = jax.block_until_ready(solve(y0))
+    errors, final, steps, result = jax.block_until_ready(solve(y0))
     wall_time = time.perf_counter() - start
     if not ensemble:
-        invariants, final, steps, result = jax.tree.map(
-            lambda x: jnp.expand_dims(x, 0), (invariants, final, steps, result)
+        errors, final, steps, result = jax.tree.map(
+            lambda x: jnp.expand_dims(x, 0), (errors, final, steps, result)
         )
     # diffrax's messages run to paragraphs; a table cell gets the first sentence.
     results = [
@@ -153,7 +226,7 @@ def run(
     ]
     return Outcome(
         # In the scene's order (energy first), not the sorted order of a JAX dict.
-        invariants={k: np.asarray(invariants[k], np.float64) for k in conserved},
+        max_errors={k: np.asarray(errors[k], np.float64) for k in conserved},
         final=jax.tree.map(np.asarray, final),
         steps=int(np.max(steps)),
         wall_time=wall_time,

@@ -77,23 +77,29 @@ def work_precision(
     periods: int | float = 100,
     steps_per_period: Sequence[int] = (50, 100, 200, 400),
     rtols: Sequence[float] = (1e-6, 1e-8, 1e-10, 1e-12),
-    n_save: int = 100,
+    n_save: int | None = None,
     dtype=jnp.float64,
+    reference: PyTree[Array] | None = None,
 ) -> WorkPrecision:
     """Wall time against accuracy: each fixed-step method at every
     `steps_per_period`, each `+PID` method at every tolerance in `rtols`, over the
     same horizon.
 
-    Accuracy is measured two ways: the largest energy error at `n_save` times, and
+    Accuracy is measured two ways: the largest energy error over every step, and
     the global error (largest component of `|y(t_1) - y_\\mathrm{ref}(t_1)|`) against
     [`diffrax_vi.study.reference_state`][]. Failed runs are kept, with `NaN` errors
     and the failure in `result`.
 
-    **Arguments:** as [`diffrax_vi.study.drift`][], plus the grids `steps_per_period`
-    and `rtols`.
+    **Arguments:** as [`diffrax_vi.study.drift`][] (except that `n_save` defaults to
+    one interval per period, and is reduced to a divisor of each run's number of
+    steps), plus the grids `steps_per_period` and `rtols`, and `reference`: the state
+    at the end of the horizon to measure the global error against (default:
+    [`diffrax_vi.study.reference_state`][]; pass it to reuse one across calls).
     """
     t1 = scene.period * periods
-    exact = jax.tree.map(np.asarray, reference_state(scene, t1))
+    if reference is None:
+        reference = reference_state(scene, t1)
+    exact = jax.tree.map(np.asarray, reference)
     scene = cast_scene(scene, dtype)
     records = []
     for spec in solvers:
@@ -108,7 +114,7 @@ def work_precision(
                 method,
                 t1=t1,
                 n_steps=n_steps,
-                n_save=math.gcd(n_save, n_steps),
+                n_save=math.gcd(n_save or max(1, round(periods)), n_steps),
                 dtype=dtype,
                 y0=scene.y0,
             )
