@@ -10,7 +10,7 @@ import pytest
 from diffrax_vi import scenes
 from diffrax_vi.study import reference_state
 
-from .helpers import max_abs_diff, reference
+from .helpers import max_abs_diff, reference, solve
 
 
 # Every scene but the learned one (which trains, and is tested on its own below).
@@ -128,26 +128,10 @@ def test_learned_lagrangian():
     truth = scenes.pendulum(1.2)
     y0 = truth.y0
     t1 = 2 * truth.period
-    learned = dfx.diffeqsolve(
-        dvi.LagrangianTerm(scene.lagrangian),
-        dvi.MidpointVI(),
-        0.0,
-        t1,
-        0.05,
-        y0,
-        max_steps=1000,
-    )
+    learned = solve(scene.lagrangian, dvi.MidpointVI(), y0, t1, 300)
     exact = reference(truth.lagrangian, y0, t1)
     untrained = scenes.LearnedLagrangian(jr.key(0))
-    before = dfx.diffeqsolve(
-        dvi.LagrangianTerm(untrained),
-        dvi.MidpointVI(),
-        0.0,
-        t1,
-        0.05,
-        y0,
-        max_steps=1000,
-    )
+    before = solve(untrained, dvi.MidpointVI(), y0, t1, 300)
     error = max_abs_diff(jax.tree.map(lambda x: x[-1], learned.ys), exact)
     assert error < 1e-2 < max_abs_diff(jax.tree.map(lambda x: x[-1], before.ys), exact)
     energy = jax.vmap(lambda q, p: dvi.energy(scene.lagrangian, 0.0, q, p))

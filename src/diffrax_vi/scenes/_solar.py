@@ -70,8 +70,10 @@ def _angular_momentum(t, y, args):
 def outer_solar_system() -> Scene:
     """The Sun and the five outer planets with Hairer–Lubich–Wanner's initial data
     (*Geometric Numerical Integration*, I.2.4): time in days, the time scale is
-    Jupiter's period (4332.59 days). Conserves energy, total linear momentum and
-    total angular momentum (vectors; the study reports the largest component error)."""
+    Jupiter's period (4332.59 days). Conserves energy (-3.2e-8 in these
+    units, so absolute errors are small numbers), total linear momentum and total
+    angular momentum (vectors of size about 1e-5; the study reports the largest
+    component error)."""
     mass = jnp.asarray(MASSES[:, None])
     return Scene(
         name="outer_solar_system",

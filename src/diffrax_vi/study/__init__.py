@@ -20,7 +20,7 @@ def seed(out: str | pathlib.Path) -> str:
     """Reproduce the seed thesis's Chapter 5 tables and figures (and Figures 1.1/1.2)
     beside the thesis's own numbers: writes `chapter5.md` and PNG figures into the
     folder `out` and returns the Markdown. Needs float64 (`jax_enable_x64`) and
-    matplotlib; about a minute on a 2-core CPU."""
+    matplotlib; about 15 s on a 2-core CPU."""
     from ._seed import chapter5
 
     return chapter5(pathlib.Path(out))

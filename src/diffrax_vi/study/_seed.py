@@ -5,6 +5,7 @@
 import pathlib
 
 import diffrax as dfx
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import matplotlib
@@ -41,36 +42,55 @@ def d2_ld(lagrangian, t0, t1, q0, q1):
     )(q1)
 
 
-def oscillator_positions(solver, h, n, thesis_start):
-    """Positions q_k, k = 0..n, of the oscillator q(0) = 1, qdot(0) = 0."""
-    term = LagrangianTerm(OSCILLATOR)
-    exact = lambda t: jnp.cos(t)
-    if not thesis_start:
-        t0, y0, state, head = 0.0, (jnp.array(1.0), jnp.array(0.0)), None, []
-    elif isinstance(solver, MidpointVI):
-        # (5.26) from q0, q1 of the analytic solution.
-        t0, head = h, [exact(0.0)]
-        y0 = (exact(h), d2_ld(OSCILLATOR, 0.0, h, exact(0.0), exact(h)))
-        state = solver.init(term, t0, t0 + h, y0, None)
-    else:
-        # (5.27) from q0, q1, q2 of the analytic solution.
-        t0, head = 2 * h, [exact(0.0), exact(h)]
-        y0 = (exact(2 * h), d2_ld(OSCILLATOR, h, 2 * h, exact(h), exact(2 * h)))
-        hs = (jnp.asarray(h), jnp.asarray(h))
-        state = ((exact(h), exact(0.0)), hs, jnp.zeros(()))
-    steps = n - len(head)
+# Room for the longest run (Figure 5.3's 10^4 steps), so that every step size shares
+# one compilation per solver.
+MAX_STEPS = 10_000
+
+
+@eqx.filter_jit
+def _solve(solver, lagrangian, t0, t1, h, y0, solver_state=None, *, max_steps):
+    """Positions at every step from t0 to t1 (padded with inf to `max_steps`)."""
     sol = dfx.diffeqsolve(
-        term,
+        LagrangianTerm(lagrangian),
         solver,
         t0,
-        t0 + steps * h,
+        t1,
         h,
         y0,
         saveat=dfx.SaveAt(t0=True, steps=True),
-        solver_state=state,
-        max_steps=steps,
+        solver_state=solver_state,
+        max_steps=max_steps,
     )
-    return np.concatenate([np.asarray(head), np.asarray(sol.ys[0])])
+    return sol.ys[0]
+
+
+def _start(solver, h, thesis_start):
+    """Where the oscillator q(0) = 1, qdot(0) = 0 starts for `solver`: the initial
+    time, state and solver state, and the positions before it."""
+    exact = lambda t: jnp.cos(t)
+    h = jnp.asarray(h)
+    if not thesis_start:
+        return jnp.asarray(0.0), (jnp.array(1.0), jnp.array(0.0)), None, []
+    if isinstance(solver, MidpointVI):
+        # (5.26) from q0, q1 of the analytic solution.
+        y0 = (exact(h), d2_ld(OSCILLATOR, 0.0, h, exact(0.0), exact(h)))
+        term = LagrangianTerm(OSCILLATOR)
+        return h, y0, solver.init(term, h, 2 * h, y0, None), [exact(0.0)]
+    # (5.27) from q0, q1, q2 of the analytic solution.
+    y0 = (exact(2 * h), d2_ld(OSCILLATOR, h, 2 * h, exact(h), exact(2 * h)))
+    state = ((exact(h), exact(0.0)), (h, h), jnp.zeros(()))
+    return 2 * h, y0, state, [exact(0.0), exact(h)]
+
+
+def oscillator_positions(solver, h, n, thesis_start):
+    """Positions q_k, k = 0..n, of the oscillator q(0) = 1, qdot(0) = 0."""
+    t0, y0, state, head = _start(solver, h, thesis_start)
+    steps = n - len(head)
+    h = jnp.asarray(h)
+    qs = _solve(
+        solver, OSCILLATOR, t0, t0 + steps * h, h, y0, state, max_steps=MAX_STEPS
+    )
+    return np.concatenate([np.asarray(head), np.asarray(qs)[: steps + 1]])
 
 
 def global_error(solver, h, T, thesis_start):
@@ -196,17 +216,15 @@ def duffing_orders():
             ns = [int(50 * T) * 2**k for k in range(5)]
             errs = [
                 abs(
-                    float(
-                        dfx.diffeqsolve(
-                            LagrangianTerm(duffing),
-                            solver,
-                            0.0,
-                            T,
-                            T / n,
-                            y0,
-                            max_steps=n,
-                        ).ys[0][-1]
-                    )
+                    _solve(
+                        solver,
+                        duffing,
+                        jnp.asarray(0.0),
+                        jnp.asarray(T),
+                        jnp.asarray(T / n),
+                        y0,
+                        max_steps=MAX_STEPS,
+                    )[n]
                     - float(fine.ys[0][i])
                 )
                 for n in ns
