@@ -136,11 +136,11 @@ def drift(
     of every conserved quantity against time.
 
     Fixed-step methods all take the same step, `period / steps_per_period`;
-    adaptive methods (`"Tsit5+PID"`) start at that step. The error of every
+    adaptive methods (`"Tsit5+PID"`) choose their own. The error of every
     conserved quantity is taken after every step, and the study records its largest
     value over each of `n_save` equal intervals (a sample every k-th step would alias
-    with the motion). The errors are streamed through `diffrax.SaveAt(fn=...)`:
-    memory is O(`n_save` + steps per interval), not O(steps).
+    with the motion). The running maximum is kept in the solver state: memory is
+    O(`n_save`), not O(steps).
 
     **Arguments:**
 
@@ -152,7 +152,8 @@ def drift(
     - `steps_per_period`: fixed steps per period.
     - `n_save`: how many intervals to record the largest errors over; must divide
         the number of steps. An adaptive method may take at most 4096 steps per
-        interval.
+        interval (a step size collapsing to nothing then fails the run rather than
+        spinning).
     - `dtype`: the floating dtype of the state, the Lagrangian's parameters and the
         times.
     - `rtol`: the tolerance of `+PID` methods.

@@ -12,6 +12,7 @@ from jaxtyping import Array, PyTree
 from .._misc import all_finite
 from ..scenes import Scene
 from ._methods import Method
+from ._track import TrackWorstError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,8 +72,9 @@ def shard_ensemble(y0s: PyTree[Array], members: int) -> PyTree[Array]:
     return jax.device_put(y0s, NamedSharding(mesh, PartitionSpec("ensemble")))
 
 
-# An adaptive method may take at most this many steps between two save times: the
-# per-interval buffer of invariant errors has this many rows.
+# An adaptive method may take at most this many steps between two save times (as
+# diffrax's default `max_steps`), so that a step size collapsing to nothing fails the
+# run rather than spinning.
 MAX_ADAPTIVE_STEPS_PER_SAVE = 4096
 
 
@@ -91,7 +93,8 @@ def run(
     """Solve `scene` from `y0` with `method` to `t1`, recording the largest error of
     each conserved quantity over each of `n_save` equal intervals, and the final
     state. Fixed steps take exactly `n_steps` (which `n_save` must divide); adaptive
-    ones start at step `t1 / n_steps` and take at most
+    ones choose their own (diffrax picks the first step of each interval, then the
+    controller, whose state carries over) and take at most
     `MAX_ADAPTIVE_STEPS_PER_SAVE` steps per interval. With `ensemble=True`, `y0` has a
     leading axis of members and the solve is vmapped over it (and runs on every
     device `y0` is sharded over). Wall time is of a second, compiled, call.
@@ -100,8 +103,8 @@ def run(
     aliases with the motion (one save per period sees one phase of the orbit, and
     misses the pendulum's peak energy error by a factor of 10^6). Each interval is
     one `diffeqsolve` inside a `lax.scan`, resumed from the last one's solver and
-    controller state, whose steps stream their errors through `SaveAt(fn=...)`:
-    memory is O(`n_save` + steps per interval), not O(steps)."""
+    controller state, with a solver wrapped in `TrackWorstError`, which keeps the
+    running maximum in its solver state: memory is O(`n_save`), not O(steps)."""
     conserved = scene.conserved()
     terms = method.terms(scene)
     solver = method.solver
@@ -117,22 +120,10 @@ def run(
     )
 
     def solve(y0):
-        i0 = {k: f(ts[0], y0, None) for k, f in conserved.items()}
-
-        def error(y):
-            return {
-                k: jnp.max(jnp.abs(jnp.ravel(f(ts[0], y, None) - i0[k])))
-                for k, f in conserved.items()
-            }
-
-        saveat = dfx.SaveAt(
-            subs=[
-                dfx.SubSaveAt(steps=True, fn=lambda t, y, args: error(y)),
-                dfx.SubSaveAt(t1=True),
-            ],
-            solver_state=True,
-            controller_state=True,
+        tracked = TrackWorstError(
+            solver, conserved, {k: f(ts[0], y0, None) for k, f in conserved.items()}
         )
+        saveat = dfx.SaveAt(t1=True, solver_state=True, controller_state=True)
         solver_state = solver.init(terms, ts[0], ts[0] + h, y0, None)
         if fixed:
             controller_state = None
@@ -144,31 +135,26 @@ def run(
 
         def interval(carry, t_span):
             y, solver_state, controller_state, result, steps, meter_state = carry
-            if fixed:
-                # Step to t0 + j h and end exactly on the save time: a constant step
-                # summed in floating point would leave a last step of a few ulps.
-                grid = t_span[0] + h * jnp.arange(per_save, dtype=dtype)
-                step_to = dfx.StepTo(jnp.concatenate([grid, t_span[1:]]))
             sol = dfx.diffeqsolve(
                 terms,
-                solver,
+                tracked,
                 t_span[0],
                 t_span[1],
-                None,
+                # diffrax places fixed steps at t0 + (t1 - t0) k / n, ending exactly
+                # on the save time; a sum of steps would leave a last step of a few
+                # ulps (and StepTo indexing a time grid costs ~1 us per step on CPU).
+                (t_span[1] - t_span[0]) / per_save if fixed else None,
                 y,
                 saveat=saveat,
-                stepsize_controller=step_to if fixed else controller,
-                solver_state=solver_state,
+                stepsize_controller=controller,
+                solver_state=(solver_state, tracked.reset()),
                 controller_state=controller_state,
                 max_steps=max_steps,
                 throw=False,
             )
-            errors, final = sol.ys
+            solver_state, errors = sol.solver_state
+            final = jax.tree.map(lambda x: x[-1], sol.ys)
             n = sol.stats["num_steps"]
-            # Rejected steps are counted in `n` but not saved.
-            taken = jnp.arange(max_steps) < sol.stats["num_accepted_steps"]
-            errors = {k: jnp.max(jnp.where(taken, e, 0)) for k, e in errors.items()}
-            final = jax.tree.map(lambda x: x[-1], final)
             ok = result == dfx.RESULTS.successful
             # diffrax's Runge-Kutta solvers do not check fixed steps for NaN: a
             # blow-up would otherwise be tabled as a success.
@@ -185,7 +171,7 @@ def run(
             )
             carry = (
                 final,
-                sol.solver_state,
+                solver_state,
                 None if fixed else sol.controller_state,
                 result,
                 steps,
