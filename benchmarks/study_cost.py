@@ -1,0 +1,95 @@
+"""What a drift study adds to the cost of a step: per-step wall time on Kepler (e = 0.6,
+200 steps per orbit) of
+
+- a bare `diffeqsolve` saving only `t1` (the solver's own cost, as in `step_cost.py`);
+- the drift study (`diffrax_vi.study.drift`), which takes every invariant's error after
+  every step and keeps the largest per save interval in the solver state;
+- the same maximum taken instead from every step's errors saved through
+  `SaveAt(steps=True, fn=...)` (one solve, a buffer write per step).
+
+Prints the ratios of the last two to the first. Pin it to one core for stable figures.
+
+Run: `taskset -c 1 python benchmarks/study_cost.py [--orbits 1000]`.
+"""
+
+import argparse
+import time
+
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+
+
+jax.config.update("jax_enable_x64", True)
+from diffrax_vi import StormerVerlet  # noqa: E402
+from diffrax_vi.scenes import kepler  # noqa: E402
+from diffrax_vi.study import drift, Method  # noqa: E402
+from diffrax_vi.study._methods import make_solver  # noqa: E402
+
+
+def per_step(fn, y0, steps):
+    jax.block_until_ready(fn(y0))
+    best = float("inf")
+    for _ in range(3):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(y0))
+        best = min(best, time.perf_counter() - start)
+    return best / steps * 1e6
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--orbits", type=int, default=1000)
+    parser.add_argument(
+        "--solvers", default="StormerVerlet(plain),StormerVerlet,MidpointVI,Tsit5"
+    )
+    args = parser.parse_args()
+    scene = kepler()
+    steps = 200 * args.orbits
+    h = scene.period / 200
+    conserved = scene.conserved()
+    start = {k: f(0.0, scene.y0, None) for k, f in conserved.items()}
+
+    def errors(t, y, args):
+        return {
+            k: jnp.max(jnp.abs(f(t, y, args) - start[k])) for k, f in conserved.items()
+        }
+
+    print(f"Kepler e=0.6, {steps} steps, float64, us per step (best of 3)")
+    print(f"{'solver':>20} {'t1 only':>9} {'study':>9} {'per-step save':>14}")
+    for name in args.solvers.split(","):
+        solver = (
+            StormerVerlet(compensated=False)
+            if name == "StormerVerlet(plain)"
+            else make_solver(name)
+        )
+        method = Method(name, solver)
+        terms = method.terms(scene)
+
+        def solve(y0, saveat):
+            return dfx.diffeqsolve(
+                terms, solver, 0.0, steps * h, h, y0, saveat=saveat, max_steps=steps
+            )
+
+        bare = per_step(
+            jax.jit(lambda y0: solve(y0, dfx.SaveAt(t1=True)).ys), scene.y0, steps
+        )
+        saved = per_step(
+            jax.jit(
+                lambda y0: jax.tree.map(
+                    jnp.max, solve(y0, dfx.SaveAt(steps=True, fn=errors)).ys
+                )
+            ),
+            scene.y0,
+            steps,
+        )
+        runs = [drift(scene, [method], periods=args.orbits).runs[0] for _ in range(3)]
+        study = min(run.wall_time for run in runs) / steps * 1e6
+        print(
+            f"{name:>20} {bare:>9.3f} {study:>9.3f} {saved:>14.3f}"
+            f"   study/bare {study / bare:5.2f}x   save/bare {saved / bare:5.2f}x"
+        )
+
+
+if __name__ == "__main__":
+    main()
