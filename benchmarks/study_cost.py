@@ -13,7 +13,6 @@ Run: `taskset -c 1 python benchmarks/study_cost.py [--orbits 1000]`.
 """
 
 import argparse
-import time
 
 import diffrax as dfx
 import jax
@@ -25,16 +24,8 @@ from diffrax_vi import StormerVerlet  # noqa: E402
 from diffrax_vi.scenes import kepler  # noqa: E402
 from diffrax_vi.study import drift, Method  # noqa: E402
 from diffrax_vi.study._methods import make_solver  # noqa: E402
-
-
-def per_step(fn, y0, steps):
-    jax.block_until_ready(fn(y0))
-    best = float("inf")
-    for _ in range(3):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(y0))
-        best = min(best, time.perf_counter() - start)
-    return best / steps * 1e6
+from diffrax_vi.study._track import max_error  # noqa: E402
+from step_cost import best_time  # noqa: E402
 
 
 def main():
@@ -51,10 +42,9 @@ def main():
     start = {k: f(0.0, scene.y0, None) for k, f in conserved.items()}
 
     def errors(t, y, args):
-        return {
-            k: jnp.max(jnp.abs(f(t, y, args) - start[k])) for k, f in conserved.items()
-        }
+        return {k: max_error(f(t, y, args), start[k]) for k, f in conserved.items()}
 
+    per_step = 1e6 / steps
     print(f"Kepler e=0.6, {steps} steps, float64, us per step (best of 3)")
     print(f"{'solver':>20} {'t1 only':>9} {'study':>9} {'per-step save':>14}")
     for name in args.solvers.split(","):
@@ -71,20 +61,20 @@ def main():
                 terms, solver, 0.0, steps * h, h, y0, saveat=saveat, max_steps=steps
             )
 
-        bare = per_step(
-            jax.jit(lambda y0: solve(y0, dfx.SaveAt(t1=True)).ys), scene.y0, steps
+        bare = per_step * best_time(
+            jax.jit(lambda y0: solve(y0, dfx.SaveAt(t1=True)).ys), scene.y0, repeats=3
         )
-        saved = per_step(
+        saved = per_step * best_time(
             jax.jit(
                 lambda y0: jax.tree.map(
                     jnp.max, solve(y0, dfx.SaveAt(steps=True, fn=errors)).ys
                 )
             ),
             scene.y0,
-            steps,
+            repeats=3,
         )
         runs = [drift(scene, [method], periods=args.orbits).runs[0] for _ in range(3)]
-        study = min(run.wall_time for run in runs) / steps * 1e6
+        study = per_step * min(run.wall_time for run in runs)
         print(
             f"{name:>20} {bare:>9.3f} {study:>9.3f} {saved:>14.3f}"
             f"   study/bare {study / bare:5.2f}x   save/bare {saved / bare:5.2f}x"

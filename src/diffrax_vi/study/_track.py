@@ -54,7 +54,7 @@ class TrackWorstError(dfx.AbstractWrappedSolver):
             terms, t0, t1, y0, args, inner, made_jump
         )
         worst = {
-            k: jnp.maximum(worst[k], _error(f(t1, y1, args), self.start[k]))
+            k: jnp.maximum(worst[k], max_error(f(t1, y1, args), self.start[k]))
             for k, f in self.conserved.items()
         }
         return y1, y_error, dense_info, (inner, worst), result
@@ -63,5 +63,6 @@ class TrackWorstError(dfx.AbstractWrappedSolver):
         return self.solver.func(terms, t0, y0, args)
 
 
-def _error(value: Array, start: Array) -> Array:
+def max_error(value: Array, start: Array) -> Array:
+    """The largest component of `|value - start|`."""
     return jnp.max(jnp.abs(jnp.ravel(value - start)))
