@@ -26,6 +26,7 @@ import optimistix as optx
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
 from ._lagrangian import AbstractLagrangian, lagrangian_value
 from ._misc import momentum_scale, tree_axpy
+from ._nonlinear import solve_implicit
 
 
 class AbstractDiscreteLagrangian(eqx.Module):
@@ -46,7 +47,8 @@ class AbstractDiscreteLagrangian(eqx.Module):
 
 class MidpointRule(AbstractDiscreteLagrangian):
     r"""$L_d(q_0, q_1) = h\,L\big(t_0 + \tfrac h2, \tfrac{q_0 + q_1}2,
-    \tfrac{q_1 - q_0}h\big)$ (the seed's (3.3))."""
+    \tfrac{q_1 - q_0}h\big)$ (Hirani (2000), eq. (3.3); Marsden & West (2001),
+    §2.6)."""
 
     def average(self, lagrangian, t0, h, q0, v, args):
         q_mid = tree_axpy(0.5 * h, v, q0)
@@ -101,7 +103,7 @@ def del_residual(
     qs: tuple[Q, Q, Q],
     args: Args,
 ) -> P:
-    r"""The discrete Euler–Lagrange residual (the seed's (3.1))
+    r"""The discrete Euler–Lagrange residual (Hirani (2000), eq. (3.1))
     $F(q_{k-1}, q_k, q_{k+1}) = D_2 L_d(q_{k-1}, q_k) + D_1 L_d(q_k, q_{k+1})$."""
     t_prev, t, t_next = ts
     q_prev, q, q_next = qs
@@ -111,7 +113,24 @@ def del_residual(
 
 
 def average_grads(rule, lagrangian, t0, h, q0, v, args) -> tuple[P, P]:
+    r"""$(\partial_{q_0}\Lambda, \partial_v\Lambda)$."""
     return jax.grad(rule.average, argnums=(3, 4))(lagrangian, t0, h, q0, v, args)
+
+
+def legendre_residual(rule, lagrangian, t0, h, q0, p0, v, args) -> P:
+    r"""The equation of the position–momentum step in the step's velocity $v$,
+    $p_0 + D_1 L_d(q_0, q_0 + h v) = p_0 + h\,\partial_{q_0}\Lambda -
+    \partial_v\Lambda$ (zero on the step: the discrete Legendre transform
+    $p_0 = -D_1 L_d$, the fibre derivative of Hirani (2000), eq. (3.4))."""
+    dq, dv = average_grads(rule, lagrangian, t0, h, q0, v, args)
+    return jtu.tree_map(lambda p, a, b: p + h * a - b, p0, dq, dv)
+
+
+def legendre_increments(rule, lagrangian, t0, h, q0, v, args) -> tuple[Q, P]:
+    r"""The increments $(q_1 - q_0, p_1 - p_0) = (h v, h\,\partial_{q_0}\Lambda)$ of
+    the step with velocity $v$, where $p_1 = D_2 L_d(q_0, q_1)$."""
+    dl_dq, _ = average_grads(rule, lagrangian, t0, h, q0, v, args)
+    return jtu.tree_map(lambda x: h * x, v), jtu.tree_map(lambda x: h * x, dl_dq)
 
 
 def discrete_hamiltonian_map(
@@ -123,7 +142,7 @@ def discrete_hamiltonian_map(
     p0: P,
     args: Args,
     v_guess: V,
-    root_finder: optx.AbstractRootFinder,
+    root_finder: optx.AbstractRootFinder | None,
     max_steps: int,
 ) -> tuple[Q, P, V, dfx.RESULTS]:
     r"""One step of the position–momentum form: solve $p_0 = -D_1 L_d(q_0, q_1)$ for
@@ -134,18 +153,12 @@ def discrete_hamiltonian_map(
     `(q1 - q0, p1 - p0, v, result)`: the increments, for the caller to add (with
     compensated summation), and `v = (q1 - q0)/h` the step's velocity.
     """
-
     scale = momentum_scale(p0)
 
-    def residual(v, _):
-        dq, dv = average_grads(rule, lagrangian, t0, h, q0, v, args)
-        return jtu.tree_map(lambda p, a, b: (p + h * a - b) / scale, p0, dq, dv)
+    def residual(v):
+        res = legendre_residual(rule, lagrangian, t0, h, q0, p0, v, args)
+        return jtu.tree_map(lambda r: r / scale, res)
 
-    sol = optx.root_find(
-        residual, root_finder, v_guess, max_steps=max_steps, throw=False
-    )
-    v = sol.value
-    dl_dq, _ = average_grads(rule, lagrangian, t0, h, q0, v, args)
-    dq = jtu.tree_map(lambda x: h * x, v)
-    dp = jtu.tree_map(lambda x: h * x, dl_dq)
-    return dq, dp, v, dfx.RESULTS.promote(sol.result)
+    v, result = solve_implicit(residual, v_guess, root_finder, max_steps)
+    dq, dp = legendre_increments(rule, lagrangian, t0, h, q0, v, args)
+    return dq, dp, v, result

@@ -11,7 +11,13 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, PyTree
 
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
-from ._misc import all_finite, default_root_finder, momentum_scale, state_dtype
+from ._misc import (
+    all_finite,
+    default_root_finder,
+    momentum_scale,
+    split_state,
+    state_dtype,
+)
 
 
 class AbstractLagrangian(eqx.Module):
@@ -132,7 +138,8 @@ class SeparableLagrangian(AbstractSeparableLagrangian):
 
 
 class TangentLift(AbstractLagrangian):
-    r"""The tangent lift (the seed's continuous linearization (4.20)) of a Lagrangian,
+    r"""The tangent lift of a Lagrangian, the continuous linearization of Hirani (2000),
+    eq. (4.20),
 
     $$L^{(2)}(q, u, v, w) = \frac{\partial L}{\partial q}(q, v)\cdot u
     + \frac{\partial L}{\partial v}(q, v)\cdot w,$$
@@ -143,9 +150,10 @@ class TangentLift(AbstractLagrangian):
 
     Its Euler–Lagrange equations are those of $L$ (in $u$) together with their
     variational equation (in $q$); with $u = \dot q$ the latter is the time derivative
-    of the Euler–Lagrange equations of $L$ (the seed's Lemma 3). Any variational solver
-    applied to `LagrangianTerm(TangentLift(L))` is the seed's algorithm on
-    $TQ \times TQ$ (4.61–4.62), and equals the tangent map of the solver's flow of $L$.
+    of the Euler–Lagrange equations of $L$ (Hirani (2000), Lemma 3). Any variational
+    solver applied to `LagrangianTerm(TangentLift(L))` is Hirani's algorithm on
+    $TQ \times TQ$, eqs. (4.61)–(4.62), and equals the tangent map of the solver's
+    flow of $L$ (Theorem 1).
 
     **Arguments:**
 
@@ -259,14 +267,13 @@ def generalised_force(
 def velocity(
     lagrangian: Callable[..., ArrayLike],
     t: RealScalarLike,
-    q: Q,
-    p: P,
+    y: tuple[Q, P],
     args: Args = None,
     *,
     v_guess: V | None = None,
 ) -> tuple[V, dfx.RESULTS]:
     r"""The inverse Legendre map: the velocity $v$ with $\partial L / \partial v
-    (t, q, v) = p$.
+    (t, q, v) = p$ at the state $y = (q, p)$.
 
     A division by the mass for an [`diffrax_vi.AbstractSeparableLagrangian`][], one
     linear solve with $\partial^2 L / \partial v^2$ for an
@@ -277,7 +284,8 @@ def velocity(
 
     - `lagrangian`: an [`diffrax_vi.AbstractLagrangian`][] or any callable
         `L(t, q, v, args)`.
-    - `t`, `q`, `p`, `args`: where to invert it.
+    - `t`, `y = (q, p)`, `args`: where to invert it, in diffrax's `(t, y, args)`
+        order.
     - `v_guess`: Newton's initial guess for a general Lagrangian. Defaults to zero,
         from which the first Newton iterate is the exact answer for a Lagrangian
         quadratic in `v`.
@@ -289,6 +297,7 @@ def velocity(
     solver failure where Newton did not converge.
     """
     lagrangian = as_lagrangian(lagrangian)
+    q, p = split_state(y, "y")
     if isinstance(lagrangian, AbstractSeparableLagrangian):
         mass = broadcast_mass(lagrangian.mass, p)
         v = jtu.tree_map(lambda m, pi: pi / m, mass, p)
@@ -339,27 +348,29 @@ def velocity(
 def energy(
     lagrangian: Callable[..., ArrayLike],
     t: RealScalarLike,
-    q: Q,
-    p: P,
+    y: tuple[Q, P],
     args: Args = None,
 ) -> Scalar:
-    r"""The energy $E = p \cdot v - L(t, q, v)$ at a point $(q, p)$ of phase space,
-    with $v$ from the inverse Legendre map.
+    r"""The energy $E = p \cdot v - L(t, q, v)$ at a point $y = (q, p)$ of phase
+    space, with $v$ from the inverse Legendre map.
 
-    For a time-independent Lagrangian this is the conserved Hamiltonian.
+    For a time-independent Lagrangian this is the conserved Hamiltonian. The
+    arguments after the first are diffrax's `(t, y, args)`, so
+    `functools.partial(diffrax_vi.energy, L)` is a `diffrax.SaveAt(fn=...)`.
 
     **Arguments:**
 
     - `lagrangian`: an [`diffrax_vi.AbstractLagrangian`][] or any callable
         `L(t, q, v, args)`.
-    - `t`, `q`, `p`, `args`: where to evaluate it; `p` has the structure of `q`.
+    - `t`, `y = (q, p)`, `args`: where to evaluate it; `p` has the structure of `q`.
 
     **Returns:**
 
     The energy, a scalar; NaN if the Legendre map cannot be inverted there.
     """
     lagrangian = as_lagrangian(lagrangian)
-    v, result = velocity(lagrangian, t, q, p, args)
+    q, p = split_state(y, "y")
+    v, result = velocity(lagrangian, t, y, args)
     pv = sum(jnp.sum(pi * vi) for pi, vi in zip(jtu.tree_leaves(p), jtu.tree_leaves(v)))
     value = pv - lagrangian_value(lagrangian, t, q, v, args)
     return jnp.where(result == dfx.RESULTS.successful, value, jnp.nan)

@@ -1,10 +1,9 @@
-import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, ArrayLike, Bool, PyTree
+from jaxtyping import Array, Bool, PyTree
 
 from ._custom_types import P, Q
 
@@ -61,6 +60,14 @@ def all_finite(tree: PyTree) -> Bool[Array, ""]:
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
 
 
+def sum_is_finite(tree: PyTree) -> Bool[Array, ""]:
+    """Whether every entry of `tree` is finite, by one sum per leaf: NaN and inf
+    survive a sum, and a sum is the cheapest reduction (a full `isfinite` pass cost
+    a fifth of a Störmer–Verlet step at 4096 degrees of freedom). Only a finite sum
+    that overflows, of entries near the dtype's largest value, reads as non-finite."""
+    return jnp.isfinite(sum(jnp.sum(x) for x in jtu.tree_leaves(tree)))
+
+
 def check_state(q: Q, p: P, name: str = "y0") -> None:
     """Trace-time check that positions and momenta have matching structure, shapes."""
     q_struct = jtu.tree_structure(q)
@@ -96,9 +103,3 @@ def split_state(y: PyTree, name: str = "y0") -> tuple[Q, P]:
 def tree_axpy(a, x: PyTree, y: PyTree) -> PyTree:
     """`a * x + y`, leafwise."""
     return jtu.tree_map(lambda xi, yi: a * xi + yi, x, y)
-
-
-def unvmap_any(x: bool | Bool[ArrayLike, "..."]) -> Bool[Array, ""]:
-    """True if `x` is true in any batch element: lets a branch stay a real branch under
-    `jax.vmap` instead of becoming a select that evaluates both sides."""
-    return eqxi.unvmap_any(x)

@@ -17,21 +17,6 @@ from ._lagrangian import (
 from ._misc import all_finite, split_state
 
 
-def hamilton_vector_field(
-    lagrangian: AbstractLagrangian,
-    t: RealScalarLike,
-    q: PyTree,
-    p: PyTree,
-    args: Args,
-    *,
-    v_guess: PyTree | None = None,
-) -> tuple[tuple[PyTree, PyTree], dfx.RESULTS]:
-    r"""Hamilton's equations $(\dot q, \dot p) = (v, \partial L/\partial q)$ at
-    $(q, p)$, and whether the Legendre map could be inverted there."""
-    v, result = velocity(lagrangian, t, q, p, args, v_guess=v_guess)
-    return (v, generalised_force(lagrangian, t, q, v, args)), result
-
-
 class LagrangianTerm(dfx.AbstractTerm):
     r"""A Lagrangian as a diffrax term on the phase-space state $y = (q, p)$.
 
@@ -68,9 +53,23 @@ class LagrangianTerm(dfx.AbstractTerm):
         """
         self.lagrangian = as_lagrangian(lagrangian)
 
-    def vf(self, t: RealScalarLike, y: PyTree, args: Args) -> PyTree:
+    def hamilton(
+        self,
+        t: RealScalarLike,
+        y: PyTree,
+        args: Args,
+        *,
+        v_guess: PyTree | None = None,
+    ) -> tuple[tuple[PyTree, PyTree], dfx.RESULTS]:
+        r"""Hamilton's equations $(\dot q, \dot p) = (v, \partial L/\partial q)$ at
+        $y = (q, p)$, and whether the Legendre map could be inverted there (from the
+        guess `v_guess` for a general Lagrangian)."""
         q, p = split_state(y, "y")
-        f, result = hamilton_vector_field(self.lagrangian, t, q, p, args)
+        v, result = velocity(self.lagrangian, t, y, args, v_guess=v_guess)
+        return (v, generalised_force(self.lagrangian, t, q, v, args)), result
+
+    def vf(self, t: RealScalarLike, y: PyTree, args: Args) -> PyTree:
+        f, result = self.hamilton(t, y, args)
         return eqx.error_if(
             f,
             (result != dfx.RESULTS.successful) & all_finite(y),
@@ -131,4 +130,56 @@ def separable_terms(
         )
     return dfx.ODETerm(_SeparableVelocity(lagrangian)), dfx.ODETerm(
         _SeparableForce(lagrangian)
+    )
+
+
+def terms_for(
+    solver: dfx.AbstractSolver, lagrangian: Callable[..., ArrayLike]
+) -> LagrangianTerm | tuple[dfx.ODETerm, dfx.ODETerm]:
+    r"""The terms that `solver` takes for `lagrangian`, ready for
+    `diffrax.diffeqsolve(terms, solver, ...)` on the state `y = (q, p)`.
+
+    Solvers of partitioned systems ([`diffrax_vi.StormerVerlet`][],
+    `diffrax.SemiImplicitEuler`, compositions of them) take Hamilton's equations as
+    the pair [`diffrax_vi.separable_terms`][]; every other solver (the variational
+    solvers of this package, diffrax's Runge–Kutta solvers, wrappers such as
+    `diffrax.HalfSolver`) takes the [`diffrax_vi.LagrangianTerm`][].
+
+    **Arguments:**
+
+    - `solver`: any diffrax solver.
+    - `lagrangian`: an [`diffrax_vi.AbstractLagrangian`][] or any callable
+        `L(t, q, v, args)`.
+
+    **Returns:**
+
+    A `LagrangianTerm`, or a pair of `diffrax.ODETerm`s.
+
+    **Raises:**
+
+    `ValueError` if the solver needs a partitioned pair and the Lagrangian is not an
+    [`diffrax_vi.AbstractSeparableLagrangian`][], or if the solver takes some other
+    structure of terms.
+    """
+    structure = solver.term_structure
+    if isinstance(structure, tuple) and len(structure) == 2:
+        lagrangian = as_lagrangian(lagrangian)
+        if not isinstance(lagrangian, AbstractSeparableLagrangian):
+            raise ValueError(
+                "Partitioned terms exist only for separable Lagrangians "
+                "L = 1/2 v^T M v - V(t, q), and "
+                f"{type(solver).__name__} integrates a partitioned system "
+                f"(dq/dt = f(p), dp/dt = g(q)); got {type(lagrangian).__name__}. "
+                "Subclass "
+                "`diffrax_vi.AbstractSeparableLagrangian`, use "
+                "`diffrax_vi.SeparableLagrangian(potential, mass)`, or choose a "
+                "solver of a LagrangianTerm (e.g. `diffrax_vi.TrapezoidalVI()`)."
+            )
+        return separable_terms(lagrangian)
+    if isinstance(structure, type) and issubclass(structure, dfx.AbstractTerm):
+        return LagrangianTerm(lagrangian)
+    raise ValueError(
+        f"{type(solver).__name__} takes terms of structure {structure}, which a "
+        "Lagrangian does not provide: it gives one LagrangianTerm, or for separable "
+        "Lagrangians the pair (ODETerm(dq/dt), ODETerm(dp/dt))."
     )

@@ -3,7 +3,11 @@ from .base import (
     AbstractSymplecticSolver as AbstractSymplecticSolver,
     AbstractVariationalSolver as AbstractVariationalSolver,
 )
-from .composition import Composition as Composition
+from .composition import (
+    Composition as Composition,
+    CompositionScheme as CompositionScheme,
+)
+from .implicit import AbstractImplicitVI as AbstractImplicitVI
 from .linearized import LinearizedVI as LinearizedVI
 from .midpoint import MidpointVI as MidpointVI
 from .stormer_verlet import StormerVerlet as StormerVerlet
@@ -12,5 +16,6 @@ from .vprk import (
     AbstractVPRK as AbstractVPRK,
     GaussVPRK as GaussVPRK,
     LobattoVPRK as LobattoVPRK,
+    VPRK as VPRK,
     VPRKTableau as VPRKTableau,
 )

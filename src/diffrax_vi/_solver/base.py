@@ -1,52 +1,88 @@
-from typing import ClassVar
+r"""The engine shared by every variational solver, and the capability markers.
+
+A variational solver is its *method*: how one step turns $(q_0, p_0)$ into increments
+$(\Delta q, \Delta p)$, and what it remembers between steps
+([`diffrax_vi.AbstractVariationalSolver`][]'s `method_init` and `method_step`).
+Everything around that is done once, here: reaching the Lagrangian inside diffrax's
+wrapped term, the physical times and the signed step, compensated summation of the
+increments, folding every check into one `diffrax.RESULTS`, and the data of the cubic
+Hermite dense output.
+"""
+
+import abc
+from typing import ClassVar, NamedTuple
 
 import diffrax as dfx
+import equinox as eqx
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
-import optimistix as optx
-from diffrax._term import WrapTerm  # diffeqsolve wraps every term in it (private).
 from equinox import AbstractVar
 from jaxtyping import Array, ArrayLike, Bool, PyTree
 
-from .._custom_types import Args, RealScalarLike, V
-from .._discrete import AbstractDiscreteLagrangian, discrete_hamiltonian_map
-from .._misc import all_finite, default_root_finder, split_state, state_dtype
-from .._term import hamilton_vector_field, LagrangianTerm
+from .._custom_types import Args, P, Q, RealScalarLike, V
+from .._misc import split_state, state_dtype, sum_is_finite
+from .._private_api import NoForwardingSolverMeta, WrapTerm
+from .._term import LagrangianTerm
 
 
-class AbstractSymplecticSolver(dfx.AbstractSolver):
+_markers = dict(metaclass=NoForwardingSolverMeta)
+
+
+class Substep(NamedTuple):
+    """A step that is the fraction `fraction` of the whole step from `t0` to `t1`, as
+    [`diffrax_vi.Composition`][] takes them.
+
+    Its size is `fraction * contr(t0, t1)`, not the difference of its own (rounded)
+    start and end times: near a large `t` that difference carries an ulp of `t` into
+    every substep, which breaks a high-order composition's order conditions (at
+    t = 2^30, kahan_li8's energy error on Kepler grew from 2.5e-12 to 2.3e-8 within
+    ten orbits)."""
+
+    fraction: float
+    t0: RealScalarLike
+    t1: RealScalarLike
+
+
+class AbstractSymplecticSolver(dfx.AbstractSolver, **_markers):
     """Marker for solvers whose step map is symplectic on `y = (q, p)`.
 
     Symplecticity, and with it bounded energy error over exponentially long times, holds
-    for fixed step sizes only: adaptive stepping (e.g. through `diffrax.HalfSolver`)
-    destroys it.
+    for fixed step sizes only. A wrapper such as `diffrax.HalfSolver` (step doubling
+    for adaptive steps) destroys it, and is not an instance of this class, although
+    diffrax forwards `isinstance` through wrappers for its own classes.
     """
 
 
-class AbstractSymmetricSolver(dfx.AbstractSolver):
+class AbstractSymmetricSolver(dfx.AbstractSolver, **_markers):
     """Marker for solvers whose step is symmetric (time-reversible): a step of `h`
-    followed by a step of `-h` returns to the start. Only these can be raised to higher
-    order by [`diffrax_vi.Composition`][]."""
+    followed by a step of `-h` returns to the start. Only these can be raised to
+    higher order by [`diffrax_vi.Composition`][], which takes their steps as fractions
+    of its own through `fractional_step`."""
+
+    @abc.abstractmethod
+    def fractional_step(
+        self,
+        terms: PyTree[dfx.AbstractTerm],
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: PyTree,
+        args: Args,
+        solver_state: PyTree,
+        made_jump: bool | Bool[ArrayLike, ""],
+        substep: Substep,
+    ) -> tuple[PyTree, None, dict[str, PyTree], PyTree, dfx.RESULTS]:
+        """A step from `t0` to `t1` whose size is `substep.fraction` times the control
+        of the whole step from `substep.t0` to `substep.t1`. Returns what `step`
+        returns; `step` is the fractional step with `Substep(1.0, t0, t1)`."""
 
 
-class AbstractVariationalSolver(dfx.AbstractSolver):
-    """Base class for variational integrators: solvers that read the Lagrangian of a
-    [`diffrax_vi.LagrangianTerm`][] and step its discrete Euler–Lagrange equations on
-    `y = (q, p)`. The one-step ones are also
-    [`diffrax_vi.AbstractSymplecticSolver`][]s; the multistep
-    [`diffrax_vi.LinearizedVI`][] is only presymplectic.
-
-    Dense output is cubic Hermite interpolation through the states and Hamilton's
-    vector field at both ends of each step.
-    """
-
-    term_structure: ClassVar = dfx.AbstractTerm
-    interpolation_cls: ClassVar = dfx.ThirdOrderHermitePolynomialInterpolation
-
-    root_finder: AbstractVar[optx.AbstractRootFinder | None]
-    root_find_max_steps: AbstractVar[int]
-    compensated: AbstractVar[bool]
+def step_control(term: dfx.AbstractTerm, substep: Substep) -> PyTree:
+    """The control (signed step) of a substep, `fraction * contr(t0, t1)`."""
+    control = term.contr(substep.t0, substep.t1)
+    if substep.fraction == 1.0:
+        return control
+    return jtu.tree_map(lambda c: substep.fraction * c, control)
 
 
 def initial_compensation(y: PyTree, enabled: bool) -> PyTree | None:
@@ -84,142 +120,191 @@ def unwrap_term(terms: dfx.AbstractTerm, solver: str) -> tuple[LagrangianTerm, A
             f"`diffrax_vi.LagrangianTerm`, but got {type(terms).__name__}. "
             "Wrap the Lagrangian: "
             f"`diffeqsolve(diffrax_vi.LagrangianTerm(L), {solver}(), ...)` with "
-            "`y0 = (q0, p0)`. For Hamilton's equations given as a pair "
-            "`(ODETerm(dq/dt), ODETerm(dp/dt))`, use `diffrax_vi.StormerVerlet()`."
+            "`y0 = (q0, p0)`, or build the terms with "
+            f"`diffrax_vi.terms_for({solver}(), L)`."
         )
     return terms, direction
 
 
-# A substep of a composition: the fraction `gamma` of the step from `T0` to `T1`.
-Substep = tuple[float, RealScalarLike, RealScalarLike]
+class StepInputs(eqx.Module):
+    """One step as a method sees it: the term, the physical start and end times, the
+    signed step `h` (all in the state's dtype), the state, `args`, and the
+    compensation of the summation (`None` when it is off)."""
+
+    term: LagrangianTerm
+    t0: Array
+    t1: Array
+    h: Array
+    q0: Q
+    p0: P
+    args: Args
+    compensation: PyTree | None
+    dtype: np.dtype = eqx.field(static=True)
+
+    def end_position(self, dq: Q) -> Q:
+        """The position `q0 + dq` that the step will end at, summed as the engine
+        sums it: for a method that evaluates a force there (Störmer–Verlet)."""
+        compensation = None if self.compensation is None else self.compensation[0]
+        return compensated_add(self.q0, dq, compensation)[0]
 
 
-def step_control(
-    term: dfx.AbstractTerm,
-    t0: RealScalarLike,
-    t1: RealScalarLike,
-    substep: Substep | None = None,
-) -> PyTree:
-    """`term.contr(t0, t1)`; for a substep of a composition, `gamma` times the control
-    of the whole step. The difference `t1 - t0` of two sub-times near a large `t`
-    carries their rounding, an ulp of `t`, into the substep's size: at t = 2^30 that
-    breaks kahan_li8's order conditions at 4e-5 and its energy error grows from
-    2.5e-12 to 2.3e-8 in ten Kepler orbits."""
-    if substep is None:
-        return term.contr(t0, t1)
-    gamma, step_t0, step_t1 = substep
-    return jtu.tree_map(lambda c: gamma * c, term.contr(step_t0, step_t1))
-
-
-def step_times(
+def step_inputs(
     terms: dfx.AbstractTerm,
-    direction: Array,
     t0: RealScalarLike,
     t1: RealScalarLike,
-    dtype: np.dtype,
-    substep: Substep | None = None,
-) -> tuple[Array, Array, Array]:
-    """Physical start and end times and the signed step, in the state's dtype."""
-    h = jnp.asarray(step_control(terms, t0, t1, substep), dtype=dtype)
-    tp0 = jnp.asarray(direction * t0, dtype=dtype)
-    tp1 = jnp.asarray(direction * t1, dtype=dtype)
-    return tp0, tp1, h
+    y0: PyTree,
+    args: Args,
+    compensation: PyTree | None,
+    substep: Substep,
+    solver: str,
+) -> StepInputs:
+    term, direction = unwrap_term(terms, solver)
+    q0, p0 = split_state(y0)
+    dtype = state_dtype(y0)
+    h = jnp.asarray(step_control(terms, substep), dtype=dtype)
+    return StepInputs(
+        term=term,
+        t0=jnp.asarray(direction * t0, dtype=dtype),
+        t1=jnp.asarray(direction * t1, dtype=dtype),
+        h=h,
+        q0=q0,
+        p0=p0,
+        args=args,
+        compensation=compensation,
+        dtype=dtype,
+    )
 
 
-def step_result(
-    result: dfx.RESULTS, y0: PyTree, y1: PyTree, start_ok: Bool[Array, ""]
-) -> dfx.RESULTS:
-    """Fold the checks every variational step makes into one `RESULTS`.
+class MethodStep(eqx.Module):
+    """What a method's step produces: the increments of the state, a velocity of the
+    step (the guess for the Legendre inversions of the dense output), the method's new
+    state, and whether the step succeeded."""
 
-    A NaN or inf state (at the start, or produced by a step that otherwise succeeded)
-    is `RESULTS.nonfinite`; a finite start at which the Legendre map could not be
-    inverted is `RESULTS.singular`.
-    """
-    y0_ok = all_finite(y0)
-    result = dfx.RESULTS.where(y0_ok & ~start_ok, dfx.RESULTS.singular, result)
-    became_nonfinite = (result == dfx.RESULTS.successful) & ~all_finite(y1)
-    result = dfx.RESULTS.where(~y0_ok | became_nonfinite, dfx.RESULTS.nonfinite, result)
-    return result
+    dq: Q
+    dp: P
+    v: V
+    state: PyTree
+    result: dfx.RESULTS
+
+
+class VIState(eqx.Module):
+    """The solver state of a variational solver: the method's own state, and the
+    compensation of the summation (`None` when it is off)."""
+
+    method: PyTree
+    compensation: PyTree | None
+
+
+def step_result(result: dfx.RESULTS, y1: PyTree) -> dfx.RESULTS:
+    """The method's result, or `RESULTS.nonfinite` for a step that succeeded but
+    produced NaN or inf (which a non-finite start always does). A method that can
+    fail by itself reports a non-finite start as such (see `solve_step`)."""
+    nonfinite = (result == dfx.RESULTS.successful) & ~sum_is_finite(y1)
+    return dfx.RESULTS.where(nonfinite, dfx.RESULTS.nonfinite, result)
 
 
 def hermite_dense_info(
-    lagrangian,
-    tp0: Array,
-    tp1: Array,
-    h: Array,
-    y0: PyTree,
-    y1: PyTree,
-    args: Args,
-    v_guess: V,
+    step: StepInputs, y0: PyTree, y1: PyTree, v_guess: V
 ) -> dict[str, PyTree]:
     """Dense output data: the states and `h` times Hamilton's vector field at both ends.
 
     Only evaluated if the output is interpolated: otherwise it is dead code that XLA
     removes.
     """
-    f0, _ = hamilton_vector_field(lagrangian, tp0, *y0, args, v_guess=v_guess)
-    f1, _ = hamilton_vector_field(lagrangian, tp1, *y1, args, v_guess=v_guess)
-    scale = lambda f: jtu.tree_map(lambda x: h * x, f)
+    term, args = step.term, step.args
+    f0, _ = term.hamilton(step.t0, y0, args, v_guess=v_guess)
+    f1, _ = term.hamilton(step.t1, y1, args, v_guess=v_guess)
+    scale = lambda f: jtu.tree_map(lambda x: step.h * x, f)
     return dict(y0=y0, y1=y1, k0=scale(f0), k1=scale(f1))
 
 
-# The implicit position–momentum step shared by every variational solver built on a
-# discrete Lagrangian. Its state is the velocity of the last two steps, `(v_{k-1/2},
-# v_{k-3/2})`, from which the next step's Newton guess is extrapolated, and the
-# compensation of the summation.
-_VIState = tuple[tuple[V, V], PyTree]
+class AbstractVariationalSolver(dfx.AbstractSolver):
+    """Base class for variational integrators: solvers that read the Lagrangian of a
+    [`diffrax_vi.LagrangianTerm`][] and step its discrete Euler–Lagrange equations on
+    `y = (q, p)`. The one-step ones are also
+    [`diffrax_vi.AbstractSymplecticSolver`][]s; the multistep
+    [`diffrax_vi.LinearizedVI`][] is only presymplectic.
 
+    A subclass supplies its method: `method_init` (the state it keeps between steps)
+    and `method_step` (the increments of one step). This class owns `init`, `step`,
+    compensated summation, the folding of checks into one `diffrax.RESULTS`, and the
+    dense output: cubic Hermite interpolation through the states and Hamilton's vector
+    field at both ends of each step.
+    """
 
-def implicit_vi_init(
-    terms: dfx.AbstractTerm,
-    solver: str,
-    t0: RealScalarLike,
-    y0: PyTree,
-    args: Args,
-    compensated: bool,
-) -> _VIState:
-    term, direction = unwrap_term(terms, solver)
-    q0, p0 = split_state(y0)
-    dtype = state_dtype(y0)
-    tp0 = jnp.asarray(direction * t0, dtype=dtype)
-    (v0, _), result = hamilton_vector_field(term.lagrangian, tp0, q0, p0, args)
-    # A Legendre map that cannot be inverted at the start leaves a NaN guess, which the
-    # first step reports as `RESULTS.singular`.
-    ok = result == dfx.RESULTS.successful
-    v0 = jtu.tree_map(lambda v: jnp.where(ok, v, jnp.nan), v0)
-    return (v0, v0), initial_compensation(y0, compensated)
+    term_structure: ClassVar = dfx.AbstractTerm
+    interpolation_cls: ClassVar = dfx.ThirdOrderHermitePolynomialInterpolation
 
+    compensated: AbstractVar[bool]
 
-def implicit_vi_step(
-    rule: AbstractDiscreteLagrangian,
-    root_finder: optx.AbstractRootFinder | None,
-    max_steps: int,
-    terms: dfx.AbstractTerm,
-    solver: str,
-    t0: RealScalarLike,
-    t1: RealScalarLike,
-    y0: PyTree,
-    args: Args,
-    solver_state: _VIState,
-    made_jump: bool | Bool[ArrayLike, ""],
-    substep: Substep | None = None,
-):
-    term, direction = unwrap_term(terms, solver)
-    q0, p0 = split_state(y0)
-    dtype = state_dtype(y0)
-    tp0, tp1, h = step_times(terms, direction, t0, t1, dtype, substep)
-    if root_finder is None:
-        root_finder = default_root_finder(dtype)
-    (v_prev, v_prev2), compensation = solver_state
-    # Second-order extrapolation of the step velocity; after a jump only the last
-    # velocity is trusted.
-    v_guess = jtu.tree_map(
-        lambda a, b: jnp.where(made_jump, a, 2 * a - b), v_prev, v_prev2
-    )
-    dq, dp, v, result = discrete_hamiltonian_map(
-        rule, term.lagrangian, tp0, h, q0, p0, args, v_guess, root_finder, max_steps
-    )
-    y1, compensation = compensated_add(y0, (dq, dp), compensation)
-    result = step_result(result, y0, y1, all_finite(v_prev))
-    dense_info = hermite_dense_info(term.lagrangian, tp0, tp1, h, y0, y1, args, v)
-    return y1, None, dense_info, ((v, v_prev), compensation), result
+    @abc.abstractmethod
+    def method_init(self, step: StepInputs) -> PyTree:
+        """The method's state before its first step (a history, a Newton guess)."""
+
+    @abc.abstractmethod
+    def method_step(
+        self, step: StepInputs, state: PyTree, made_jump: Bool[ArrayLike, ""]
+    ) -> MethodStep:
+        """One step of the method. After a jump (`made_jump`) `state` belongs to the
+        trajectory before it."""
+
+    def init(
+        self,
+        terms: dfx.AbstractTerm,
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: tuple[PyTree, PyTree],
+        args: Args,
+    ) -> VIState:
+        compensation = initial_compensation(y0, self.compensated)
+        step = step_inputs(
+            terms,
+            t0,
+            t1,
+            y0,
+            args,
+            compensation,
+            Substep(1.0, t0, t1),
+            type(self).__name__,
+        )
+        return VIState(self.method_init(step), compensation)
+
+    def step(
+        self,
+        terms: dfx.AbstractTerm,
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: tuple[PyTree, PyTree],
+        args: Args,
+        solver_state: VIState,
+        made_jump: bool | Bool[ArrayLike, ""],
+    ) -> tuple[PyTree, None, dict[str, PyTree], VIState, dfx.RESULTS]:
+        return self.fractional_step(
+            terms, t0, t1, y0, args, solver_state, made_jump, Substep(1.0, t0, t1)
+        )
+
+    def fractional_step(
+        self,
+        terms: dfx.AbstractTerm,
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: tuple[PyTree, PyTree],
+        args: Args,
+        solver_state: VIState,
+        made_jump: bool | Bool[ArrayLike, ""],
+        substep: Substep,
+    ) -> tuple[PyTree, None, dict[str, PyTree], VIState, dfx.RESULTS]:
+        compensation = solver_state.compensation
+        step = step_inputs(
+            terms, t0, t1, y0, args, compensation, substep, type(self).__name__
+        )
+        out = self.method_step(step, solver_state.method, made_jump)
+        y1, compensation = compensated_add(y0, (out.dq, out.dp), compensation)
+        result = step_result(out.result, y1)
+        dense_info = hermite_dense_info(step, y0, y1, out.v)
+        return y1, None, dense_info, VIState(out.state, compensation), result
+
+    def func(
+        self, terms: dfx.AbstractTerm, t0: RealScalarLike, y0: PyTree, args: Args
+    ) -> PyTree:
+        return terms.vf(t0, y0, args)

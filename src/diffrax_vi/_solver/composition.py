@@ -1,4 +1,16 @@
+r"""Symmetric compositions: a scheme is its coefficients, its order and its citation.
+
+A composition $\Psi_h = \Phi_{\gamma_m h}\circ\dots\circ\Phi_{\gamma_1 h}$ of a
+symmetric method $\Phi$ of order $p$ with symmetric $\gamma$
+($\gamma_k = \gamma_{m+1-k}$) and $\sum_k\gamma_k = 1$ is symmetric and of order at
+least $p$; with also $\sum_k \gamma_k^{p+1} = 0$ its order is $p + 2$ (Hairer,
+Lubich & Wanner (2006), II.4 and V.3). The composition of variational integrators is
+the variational integrator of the composed discrete Lagrangian, so it is symplectic.
+"""
+
+import dataclasses
 import functools
+from collections.abc import Sequence
 from typing import ClassVar
 
 import diffrax as dfx
@@ -7,7 +19,93 @@ import numpy as np
 from jaxtyping import ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, RealScalarLike
-from .base import AbstractSymmetricSolver, AbstractSymplecticSolver
+from .base import (
+    AbstractSymmetricSolver,
+    AbstractSymplecticSolver,
+    step_control,
+    Substep,
+)
+from .vprk import AbstractVPRK
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CompositionScheme:
+    r"""The step fractions $\gamma_1, \dots, \gamma_m$ of a symmetric composition (not
+    a pytree), validated when built: symmetric, finite, summing to 1.
+
+    **Fields:**
+
+    - `coefficients`: the fractions $\gamma_k$ (some may be negative).
+    - `order`: the order of the composition of a symmetric method of order
+        `base_order`; `None` to infer it from the order conditions (order $p + 2$ if
+        $\sum_k \gamma_k^{p+1} = 0$ for the base's order $p$, else $p$).
+    - `base_order`: the order of the base method the coefficients were designed for.
+    - `reference`: where the coefficients come from.
+
+    The order of a composition of a base of order $p \ge$ `base_order` is then
+    $\max(\text{order}, p)$; of a base of lower order, only $p$ is claimed.
+    """
+
+    coefficients: np.ndarray
+    order: int | None = None
+    base_order: int = 2
+    reference: str = ""
+
+    def __post_init__(self):
+        gammas = np.asarray(self.coefficients, dtype=np.float64)
+        object.__setattr__(self, "coefficients", gammas)
+        if gammas.ndim != 1 or gammas.size == 0 or not np.all(np.isfinite(gammas)):
+            raise ValueError(
+                "A composition scheme needs a non-empty sequence of finite step "
+                f"fractions; got {self.coefficients!r}."
+            )
+        if np.any(gammas == 0):
+            raise ValueError("A composition scheme's step fractions must be non-zero.")
+        if not np.allclose(gammas, gammas[::-1], rtol=0, atol=1e-14):
+            raise ValueError(
+                "A composition scheme must be symmetric (gamma_k = gamma_{m+1-k}), so "
+                f"that the composition is symmetric; got {gammas.tolist()}."
+            )
+        if abs(gammas.sum() - 1) > 1e-13:
+            raise ValueError(
+                "A composition scheme's step fractions must sum to 1, so that a step "
+                f"of the composition is a step of size h; they sum to {gammas.sum()!r}."
+            )
+        if self.order is not None:
+            # Necessary conditions: sum gamma^k = 0 for odd k from the base's order + 1
+            # up to the claimed order - 1. The fitted orders in the tests check the
+            # rest.
+            for k in range(self.base_order + 1, self.order, 2):
+                defect = abs(np.sum(gammas**k)) / np.sum(np.abs(gammas) ** k)
+                if defect > 1e-12:
+                    raise ValueError(
+                        f"A composition scheme of order {self.order} for a base of "
+                        f"order {self.base_order} needs sum gamma^{k} = 0; it is "
+                        f"{np.sum(gammas**k):.3e}."
+                    )
+
+    def order_for(self, base_order: int | None) -> int | None:
+        """The order of the composition of a symmetric method of order `base_order`."""
+        if base_order is None:
+            return None
+        if self.order is None:
+            k = base_order + 1
+            gammas = self.coefficients
+            if abs(np.sum(gammas**k)) <= 1e-12 * np.sum(np.abs(gammas) ** k):
+                return base_order + 2
+            return base_order
+        if base_order < self.base_order:
+            return base_order
+        return max(self.order, base_order)
+
+    def _key(self):
+        return (self.coefficients.tobytes(), self.order, self.base_order)
+
+    def __eq__(self, other):
+        return isinstance(other, CompositionScheme) and self._key() == other._key()
+
+    def __hash__(self):
+        return hash(self._key())
 
 
 def _symmetric(half: list[float]) -> np.ndarray:
@@ -15,21 +113,39 @@ def _symmetric(half: list[float]) -> np.ndarray:
     return np.array(half + half[-2::-1])
 
 
-@functools.cache
-def composition_coefficients(scheme: str) -> tuple[np.ndarray, int]:
-    """The step fractions `gamma_k` of a symmetric composition, and its order when
-    the base method is symmetric of order 2."""
-    if scheme == "yoshida4":
-        # Triple jump: Creutz & Gocksch (1989), Suzuki (1990), Yoshida (1990).
-        g = 1 / (2 - 2 ** (1 / 3))
-        return np.array([g, 1 - 2 * g, g]), 4
-    if scheme == "suzuki4":
-        # Suzuki (1990), five stages.
-        g = 1 / (4 - 4 ** (1 / 3))
-        return np.array([g, g, 1 - 4 * g, g, g]), 4
-    if scheme == "kahan_li6":
-        # Kahan & Li (1997), s9odr6a; Hairer, Lubich & Wanner (2006), V.3.2.
-        return _symmetric(
+def triple_jump(base_order: int) -> CompositionScheme:
+    r"""The triple jump $(\gamma, 1 - 2\gamma, \gamma)$,
+    $\gamma = 1/(2 - 2^{1/(p+1)})$: raises a symmetric method of order $p$ to order
+    $p + 2$. Nested, it reaches any even order (Yoshida 1990)."""
+    g = 1 / (2 - 2 ** (1 / (base_order + 1)))
+    return CompositionScheme(
+        np.array([g, 1 - 2 * g, g]),
+        order=base_order + 2,
+        base_order=base_order,
+        reference="Creutz & Gocksch (1989); Suzuki (1990); Yoshida (1990)",
+    )
+
+
+def suzuki_fractal(base_order: int) -> CompositionScheme:
+    r"""Suzuki's five-stage fractal $(\gamma, \gamma, 1 - 4\gamma, \gamma, \gamma)$,
+    $\gamma = 1/(4 - 4^{1/(p+1)})$: order $p + 2$ with a smaller error constant than
+    the triple jump."""
+    g = 1 / (4 - 4 ** (1 / (base_order + 1)))
+    return CompositionScheme(
+        np.array([g, g, 1 - 4 * g, g, g]),
+        order=base_order + 2,
+        base_order=base_order,
+        reference="Suzuki (1990)",
+    )
+
+
+# Named schemes, each a function of the base method's order. The fixed ones are for
+# a second-order base; the recursive ones raise any even order by two.
+SCHEMES = {
+    "yoshida4": lambda p: triple_jump(2),
+    "suzuki4": lambda p: suzuki_fractal(2),
+    "kahan_li6": lambda p: CompositionScheme(
+        _symmetric(
             [
                 0.39216144400731413927925056,
                 0.33259913678935943859974864,
@@ -37,10 +153,12 @@ def composition_coefficients(scheme: str) -> tuple[np.ndarray, int]:
                 0.08221359629355080023149045,
                 0.79854399093482996339895035,
             ]
-        ), 6
-    if scheme == "kahan_li8":
-        # Kahan & Li (1997), s17odr8a; Hairer, Lubich & Wanner (2006), V.3.2.
-        return _symmetric(
+        ),
+        order=6,
+        reference="Kahan & Li (1997), s9odr6a; Hairer, Lubich & Wanner (2006), V.3.2",
+    ),
+    "kahan_li8": lambda p: CompositionScheme(
+        _symmetric(
             [
                 0.13020248308889008087881763,
                 0.56116298177510838456196441,
@@ -52,20 +170,35 @@ def composition_coefficients(scheme: str) -> tuple[np.ndarray, int]:
                 0.29501172360931029887096624,
                 -0.60550853383003451169892108,
             ]
-        ), 8
-    raise ValueError(
-        f"Unknown composition scheme {scheme!r}. Choose from: {', '.join(SCHEMES)}."
-    )
+        ),
+        order=8,
+        reference="Kahan & Li (1997), s17odr8a; Hairer, Lubich & Wanner (2006), V.3.2",
+    ),
+    "triple_jump": triple_jump,
+    "suzuki_fractal": suzuki_fractal,
+}
 
 
-SCHEMES = ("yoshida4", "suzuki4", "kahan_li6", "kahan_li8")
+@functools.cache
+def named_scheme(name: str, base_order: int) -> CompositionScheme:
+    """The scheme `name` of `SCHEMES` for a base of order `base_order`."""
+    if name not in SCHEMES:
+        raise ValueError(
+            f"Unknown composition scheme {name!r}. Choose from: {', '.join(SCHEMES)}, "
+            "or pass the step fractions (a symmetric sequence summing to 1) or a "
+            "`diffrax_vi.CompositionScheme`."
+        )
+    return SCHEMES[name](base_order)
 
 
-def _scaled_increments(terms, t0, t1, f):
-    """`f` times each term's control over `[t0, t1]`: the Hermite slopes."""
-    if isinstance(terms, tuple):
-        return tuple(term.prod(fi, term.contr(t0, t1)) for term, fi in zip(terms, f))
-    return terms.prod(f, terms.contr(t0, t1))
+def _as_scheme(
+    scheme: "str | Sequence[float] | CompositionScheme", base_order: int
+) -> CompositionScheme:
+    if isinstance(scheme, CompositionScheme):
+        return scheme
+    if isinstance(scheme, str):
+        return named_scheme(scheme, base_order)
+    return CompositionScheme(np.asarray(scheme, dtype=np.float64))
 
 
 class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
@@ -75,21 +208,27 @@ class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
 
     The composition of variational integrators is the variational integrator of the
     composed discrete Lagrangian, so it is symplectic, and symmetric because the
-    $\gamma_k$ are. Its order is that of the scheme (4, 6 or 8) for a second-order
-    base. Explicit if the base is. Fixed step sizes only. Cubic Hermite interpolation
-    for dense output.
+    $\gamma_k$ are. It is itself composable, so compositions nest: a triple jump over
+    an order-4 composition has order 6. Explicit if the base is. Fixed step sizes
+    only. Cubic Hermite interpolation for dense output.
 
-    Schemes:
+    Named schemes:
 
-    - `"yoshida4"`: the triple jump, 3 stages, order 4.
+    - `"yoshida4"`: the triple jump, 3 stages, order 4 from a second-order base.
     - `"suzuki4"`: Suzuki's 5-stage fractal, order 4 (smaller error constant).
     - `"kahan_li6"`: Kahan & Li's 9 stages, order 6.
     - `"kahan_li8"`: Kahan & Li's 17 stages, order 8.
+    - `"triple_jump"`, `"suzuki_fractal"`: the same constructions for a base of any
+        order $p$, raising it to $p + 2$.
 
     !!! example
 
         ```python
         solver = diffrax_vi.Composition(diffrax_vi.StormerVerlet(), "kahan_li8")
+        order6 = diffrax_vi.Composition(
+            diffrax_vi.Composition(diffrax_vi.MidpointVI(), "triple_jump"),
+            "triple_jump",
+        )
         ```
 
     ??? cite "References"
@@ -128,25 +267,42 @@ class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
     """
 
     base: dfx.AbstractSolver
-    scheme: str = eqx.field(static=True, default="yoshida4")
+    scheme: CompositionScheme = eqx.field(static=True)
 
     interpolation_cls: ClassVar = dfx.ThirdOrderHermitePolynomialInterpolation
 
-    def __check_init__(self):
-        if not isinstance(self.base, AbstractSymmetricSolver):
+    def __init__(
+        self,
+        base: dfx.AbstractSolver,
+        scheme: "str | Sequence[float] | CompositionScheme" = "yoshida4",
+    ):
+        if not isinstance(base, AbstractSymmetricSolver):
             raise ValueError(
                 f"Composition raises the order of a symmetric method only; "
-                f"{type(self.base).__name__} is not symmetric. Use MidpointVI, "
-                "TrapezoidalVI, StormerVerlet or GaussVPRK as the base."
+                f"{type(base).__name__} is not one. Use MidpointVI, TrapezoidalVI, "
+                "StormerVerlet, GaussVPRK, LobattoVPRK or a Composition as the base "
+                "(a wrapper such as diffrax.HalfSolver is not symmetric)."
             )
-        composition_coefficients(self.scheme)
+        if isinstance(base, AbstractVPRK) and not base.tableau.symmetric:
+            raise ValueError(
+                "Composition needs a symmetric base, but this VPRK tableau is not "
+                "symmetric (a_ij + a_{s+1-i, s+1-j} = b_j fails)."
+            )
+        base_order = base.order(None)
+        if base_order is None or base_order % 2:
+            raise ValueError(
+                f"Composition needs the base's (even) order; "
+                f"{type(base).__name__}.order() is {base_order}."
+            )
+        self.base = base
+        self.scheme = _as_scheme(scheme, base_order)
 
     @property
     def term_structure(self):
         return self.base.term_structure
 
     def order(self, terms):
-        return composition_coefficients(self.scheme)[1]
+        return self.scheme.order_for(self.base.order(terms))
 
     def init(
         self,
@@ -156,9 +312,9 @@ class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
         y0: PyTree,
         args: Args,
     ) -> PyTree:
-        gammas, _ = composition_coefficients(self.scheme)
+        first = float(self.scheme.coefficients[0])
         # Python floats are weakly typed: they keep float32 times float32.
-        return self.base.init(terms, t0, t0 + float(gammas[0]) * (t1 - t0), y0, args)
+        return self.base.init(terms, t0, t0 + first * (t1 - t0), y0, args)
 
     def step(
         self,
@@ -170,13 +326,28 @@ class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
         solver_state: PyTree,
         made_jump: bool | Bool[ArrayLike, ""],
     ):
-        gammas, _ = composition_coefficients(self.scheme)
+        return self.fractional_step(
+            terms, t0, t1, y0, args, solver_state, made_jump, Substep(1.0, t0, t1)
+        )
+
+    def fractional_step(
+        self,
+        terms: PyTree[dfx.AbstractTerm],
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: PyTree,
+        args: Args,
+        solver_state: PyTree,
+        made_jump: bool | Bool[ArrayLike, ""],
+        substep: Substep,
+    ):
+        gammas = self.scheme.coefficients
         fractions = np.concatenate([[0.0], np.cumsum(gammas)])
         ts = [t0 + float(f) * (t1 - t0) for f in fractions]
         ts[-1] = t1  # exactly, not up to the rounding of the cumulative sum
         y, state, result = y0, solver_state, dfx.RESULTS.successful
-        for k in range(len(gammas)):
-            y, _, _, state, sub_result = self.base.step(
+        for k, gamma in enumerate(gammas):
+            y, _, _, state, sub_result = self.base.fractional_step(
                 terms,
                 ts[k],
                 ts[k + 1],
@@ -184,8 +355,7 @@ class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
                 args,
                 state,
                 made_jump if k == 0 else False,
-                # The substep's size from the whole step's, not from ts[k + 1] - ts[k].
-                substep=(float(gammas[k]), t0, t1),
+                Substep(substep.fraction * float(gamma), substep.t0, substep.t1),
             )
             result = dfx.RESULTS.where(
                 result == dfx.RESULTS.successful, sub_result, result
@@ -195,8 +365,8 @@ class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
         dense_info = dict(
             y0=y0,
             y1=y,
-            k0=_scaled_increments(terms, t0, t1, f0),
-            k1=_scaled_increments(terms, t0, t1, f1),
+            k0=_scaled(terms, substep, f0),
+            k1=_scaled(terms, substep, f1),
         )
         return y, None, dense_info, state, result
 
@@ -204,10 +374,22 @@ class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
         return self.base.func(terms, t0, y0, args)
 
 
+def _scaled(terms, substep: Substep, f):
+    """`f` times each term's control over the step: the Hermite slopes."""
+    if isinstance(terms, tuple):
+        return tuple(
+            term.prod(fi, step_control(term, substep)) for term, fi in zip(terms, f)
+        )
+    return terms.prod(f, step_control(terms, substep))
+
+
 Composition.__init__.__doc__ = """**Arguments:**
 
-- `base`: a symmetric solver of this package: [`diffrax_vi.MidpointVI`][],
+- `base`: a symmetric solver: [`diffrax_vi.MidpointVI`][],
     [`diffrax_vi.TrapezoidalVI`][], [`diffrax_vi.StormerVerlet`][],
-    [`diffrax_vi.GaussVPRK`][] or [`diffrax_vi.LobattoVPRK`][].
-- `scheme`: `"yoshida4"` (default), `"suzuki4"`, `"kahan_li6"` or `"kahan_li8"`.
+    [`diffrax_vi.GaussVPRK`][], [`diffrax_vi.LobattoVPRK`][], a [`diffrax_vi.VPRK`][]
+    with a symmetric tableau, or a `Composition`.
+- `scheme`: a name (`"yoshida4"`, the default; `"suzuki4"`, `"kahan_li6"`,
+    `"kahan_li8"`, `"triple_jump"`, `"suzuki_fractal"`), a symmetric sequence of step
+    fractions summing to 1, or a [`diffrax_vi.CompositionScheme`][].
 """

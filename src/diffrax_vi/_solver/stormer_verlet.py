@@ -1,13 +1,16 @@
+from collections.abc import Callable
 from typing import ClassVar
 
 import diffrax as dfx
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-from jaxtyping import Array, ArrayLike, Bool, PyTree
+from jaxtyping import ArrayLike, Bool, PyTree
 
-from .._custom_types import Args, RealScalarLike
-from .._misc import all_finite, unvmap_any
+from .._custom_types import Args, P, Q, RealScalarLike
+from .._misc import all_finite, sum_is_finite
+from .._private_api import unvmap_any
 from .base import (
     AbstractSymmetricSolver,
     AbstractSymplecticSolver,
@@ -18,30 +21,46 @@ from .base import (
 )
 
 
-# dp/dt at the start of the step, reused from the last one, and the compensation of
-# the summation.
-_SolverState = tuple[PyTree, PyTree]
-
-
-def _start_force(term_p, t0, y0, args):
-    """`dp/dt` at the start, poisoned with NaN if the state is not finite: the first
-    kick then carries the NaN into the momentum, which every step checks."""
-    q0, _ = y0
-    ok = all_finite(y0)
-    return jtu.tree_map(lambda g: jnp.where(ok, g, jnp.nan), term_p.vf(t0, q0, args))
-
-
-def _momentum_finite(p) -> Bool[Array, ""]:
-    # One sum per leaf, the cheapest reduction: NaN and inf survive a sum.
-    return jnp.isfinite(sum(jnp.sum(x) for x in jtu.tree_leaves(p)))
-
-
-def _half(control):
-    return jtu.tree_map(lambda c: 0.5 * c, control)
-
-
 def _add(a, b):
     return jtu.tree_map(lambda x, y: x + y, a, b)
+
+
+def kick_drift_kick(
+    p0: P,
+    force0: P,
+    *,
+    kick: Callable[[P], P],
+    drift: Callable[[P], Q],
+    force: Callable[[Q], P],
+    end_position: Callable[[Q], Q],
+) -> tuple[Q, P, P, P]:
+    r"""The Störmer–Verlet step as increments: $p_{1/2} = p_0 + \tfrac h2 g_0$,
+    $q_1 = q_0 + h f(p_{1/2})$, $p_1 = p_{1/2} + \tfrac h2 g(q_1)$.
+
+    `kick(g)` is the impulse of the force `g` over half the step, `drift(p)` the
+    position increment over the step at momentum `p`, `force(q)` the force at the end
+    of the step, `end_position(dq)` the position the step ends at. Returns
+    `(q1 - q0, kick0, kick1, g(q1))`: the two half kicks add up to `p1 - p0`, and
+    the last force starts the next step."""
+    kick0 = kick(force0)
+    dq = drift(_add(p0, kick0))
+    force1 = force(end_position(dq))
+    return dq, kick0, kick(force1), force1
+
+
+def poisoned_force(force: P, y0: PyTree) -> P:
+    """`force`, or NaN if the state `y0` is not finite: the first kick then carries
+    the NaN into the momentum, which every step checks."""
+    ok = all_finite(y0)
+    return jtu.tree_map(lambda g: jnp.where(ok, g, jnp.nan), force)
+
+
+class VerletState(eqx.Module):
+    """The force at the end of the last step (the first kick of the next one) and the
+    compensation of the summation (`None` when it is off)."""
+
+    force: PyTree
+    compensation: PyTree | None
 
 
 class StormerVerlet(AbstractSymplecticSolver, AbstractSymmetricSolver):
@@ -68,7 +87,8 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractSymmetricSolver):
     $f$ to return NaN or inf for a finite momentum.)
 
     For $f = M^{-1}p$, $g = -\nabla V$ this is the variational integrator of the
-    trapezoidal discrete Lagrangian ([`diffrax_vi.TrapezoidalVI`][]).
+    trapezoidal discrete Lagrangian ([`diffrax_vi.TrapezoidalVI`][]);
+    [`diffrax_vi.terms_for`][] builds the pair from a separable Lagrangian.
 
     ??? cite "Reference"
 
@@ -100,11 +120,10 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractSymmetricSolver):
         t1: RealScalarLike,
         y0: tuple[PyTree, PyTree],
         args: Args,
-    ) -> _SolverState:
+    ) -> VerletState:
         _, term_p = terms
-        return _start_force(term_p, t0, y0, args), initial_compensation(
-            y0, self.compensated
-        )
+        force = poisoned_force(term_p.vf(t0, y0[0], args), y0)
+        return VerletState(force, initial_compensation(y0, self.compensated))
 
     def step(
         self,
@@ -113,51 +132,72 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractSymmetricSolver):
         t1: RealScalarLike,
         y0: tuple[PyTree, PyTree],
         args: Args,
-        solver_state: _SolverState,
+        solver_state: VerletState,
         made_jump: bool | Bool[ArrayLike, ""],
-        *,
-        substep: Substep | None = None,
     ) -> tuple[
-        tuple[PyTree, PyTree], None, dict[str, PyTree], _SolverState, dfx.RESULTS
+        tuple[PyTree, PyTree], None, dict[str, PyTree], VerletState, dfx.RESULTS
+    ]:
+        return self.fractional_step(
+            terms, t0, t1, y0, args, solver_state, made_jump, Substep(1.0, t0, t1)
+        )
+
+    def fractional_step(
+        self,
+        terms: tuple[dfx.AbstractTerm, dfx.AbstractTerm],
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: tuple[PyTree, PyTree],
+        args: Args,
+        solver_state: VerletState,
+        made_jump: bool | Bool[ArrayLike, ""],
+        substep: Substep,
+    ) -> tuple[
+        tuple[PyTree, PyTree], None, dict[str, PyTree], VerletState, dfx.RESULTS
     ]:
         term_q, term_p = terms
         q0, p0 = y0
         # After a jump the cached force belongs to the state before the jump.
-        cached, compensation = solver_state
-        g0 = jax.lax.cond(
+        force0 = jax.lax.cond(
             unvmap_any(made_jump),
-            lambda: _start_force(term_p, t0, y0, args),
-            lambda: cached,
+            lambda: poisoned_force(term_p.vf(t0, q0, args), y0),
+            lambda: solver_state.force,
         )
-        control_q = step_control(term_q, t0, t1, substep)
-        control_p = step_control(term_p, t0, t1, substep)
-        half_p = _half(control_p)
-        kick0 = term_p.prod(g0, half_p)
-        p_half = _add(p0, kick0)
-        dq = term_q.vf_prod(0.5 * (t0 + t1), p_half, args, control_q)
+        control_q = step_control(term_q, substep)
+        control_p = step_control(term_p, substep)
+        half_p = jtu.tree_map(lambda c: 0.5 * c, control_p)
+        compensation = solver_state.compensation
+        comp_q, comp_p = (None, None) if compensation is None else compensation
+        dq, kick0, kick1, force1 = kick_drift_kick(
+            p0,
+            force0,
+            kick=lambda g: term_p.prod(g, half_p),
+            drift=lambda p: term_q.vf_prod(0.5 * (t0 + t1), p, args, control_q),
+            force=lambda q: term_p.vf(t1, q, args),
+            end_position=lambda dq: compensated_add(q0, dq, comp_q)[0],
+        )
+        q1, comp_q = compensated_add(q0, dq, comp_q)
         if compensation is None:
-            q1 = _add(q0, dq)
-            g1 = term_p.vf(t1, q1, args)
-            p1 = _add(p_half, term_p.prod(g1, half_p))
+            p1 = _add(_add(p0, kick0), kick1)
         else:
-            comp_q, comp_p = compensation
-            q1, comp_q = compensated_add(q0, dq, comp_q)
-            g1 = term_p.vf(t1, q1, args)
-            dp = _add(kick0, term_p.prod(g1, half_p))
-            p1, comp_p = compensated_add(p0, dp, comp_p)
+            p1, comp_p = compensated_add(p0, _add(kick0, kick1), comp_p)
             compensation = (comp_q, comp_p)
         y1 = (q1, p1)
-
         result = dfx.RESULTS.where(
-            _momentum_finite(p1), dfx.RESULTS.successful, dfx.RESULTS.nonfinite
+            sum_is_finite(p1), dfx.RESULTS.successful, dfx.RESULTS.nonfinite
         )
         dense_info = dict(
             y0=y0,
             y1=y1,
-            k0=(term_q.vf_prod(t0, p0, args, control_q), term_p.prod(g0, control_p)),
-            k1=(term_q.vf_prod(t1, p1, args, control_q), term_p.prod(g1, control_p)),
+            k0=(
+                term_q.vf_prod(t0, p0, args, control_q),
+                term_p.prod(force0, control_p),
+            ),
+            k1=(
+                term_q.vf_prod(t1, p1, args, control_q),
+                term_p.prod(force1, control_p),
+            ),
         )
-        return y1, None, dense_info, (g1, compensation), result
+        return y1, None, dense_info, VerletState(force1, compensation), result
 
     def func(
         self,

@@ -1,34 +1,32 @@
 import diffrax as dfx
+import jax
+import jax.tree_util as jtu
 import optimistix as optx
-from diffrax._term import WrapTerm  # diffeqsolve wraps every term in it (private).
 from jaxtyping import ArrayLike, Bool, PyTree
 
-from .._custom_types import Args, RealScalarLike
-from .._discrete import TrapezoidalRule
-from .._lagrangian import AbstractSeparableLagrangian
-from .._term import separable_terms
+from .._discrete import legendre_increments, legendre_residual, TrapezoidalRule
+from .._lagrangian import (
+    AbstractSeparableLagrangian,
+    broadcast_mass,
+    generalised_force,
+)
+from .._private_api import unvmap_any
 from .base import (
     AbstractSymmetricSolver,
     AbstractSymplecticSolver,
     AbstractVariationalSolver,
-    implicit_vi_init,
-    implicit_vi_step,
-    Substep,
-    unwrap_term,
+    MethodStep,
+    StepInputs,
 )
-from .stormer_verlet import StormerVerlet
+from .implicit import IMPLICIT_ARGS_DOC, init_unknowns, solve_step, Unknowns
+from .stormer_verlet import kick_drift_kick, poisoned_force
 
 
-def _partitioned(terms: dfx.AbstractTerm):
-    """For a separable Lagrangian: its partitioned terms, wrapped like the input."""
-    term, direction = unwrap_term(terms, "TrapezoidalVI")
-    lagrangian = term.lagrangian
-    if not isinstance(lagrangian, AbstractSeparableLagrangian):
-        return None
-    pair = separable_terms(lagrangian)
-    if isinstance(terms, WrapTerm):
-        pair = tuple(WrapTerm(t, direction) for t in pair)
-    return pair
+_RULE = TrapezoidalRule()
+
+
+def _force(step: StepInputs, t, q) -> PyTree:
+    return generalised_force(step.term.lagrangian, t, q, None, step.args)
 
 
 class TrapezoidalVI(
@@ -45,9 +43,12 @@ class TrapezoidalVI(
 
     $$L_d(q_0, q_1) = \tfrac h2\big[L(t_0, q_0, v) + L(t_0 + h, q_1, v)\big],$$
 
-    stepped in position–momentum form on $y = (q, p)$. For
+    stepped in position–momentum form on $y = (q, p)$ through the discrete Legendre
+    transforms $p_0 = -D_1 L_d$, $p_1 = D_2 L_d$ (Hirani (2000), eq. (3.4)). For
     $L = \tfrac12 v^\top M v - V(t, q)$ the step equations are explicit and are exactly
-    [`diffrax_vi.StormerVerlet`][] on Hamilton's equations.
+    [`diffrax_vi.StormerVerlet`][] on Hamilton's equations (Marsden & West (2001),
+    Part 2). For a configuration-dependent mass it differs from `LobattoVPRK(2)`,
+    whose two stages have their own velocities.
 
     ??? cite "Reference"
 
@@ -70,60 +71,54 @@ class TrapezoidalVI(
     def order(self, terms):
         return 2
 
-    def init(
-        self,
-        terms: dfx.AbstractTerm,
-        t0: RealScalarLike,
-        t1: RealScalarLike,
-        y0: tuple[PyTree, PyTree],
-        args: Args,
-    ) -> PyTree:
-        pair = _partitioned(terms)
-        if pair is not None:
-            return StormerVerlet(self.compensated).init(pair, t0, t1, y0, args)
-        return implicit_vi_init(terms, "TrapezoidalVI", t0, y0, args, self.compensated)
+    def method_init(self, step: StepInputs) -> PyTree:
+        if isinstance(step.term.lagrangian, AbstractSeparableLagrangian):
+            y0 = (step.q0, step.p0)
+            return poisoned_force(_force(step, step.t0, step.q0), y0)
+        return init_unknowns(step, lambda v: v)
 
-    def step(
-        self,
-        terms: dfx.AbstractTerm,
-        t0: RealScalarLike,
-        t1: RealScalarLike,
-        y0: tuple[PyTree, PyTree],
-        args: Args,
-        solver_state: PyTree,
-        made_jump: bool | Bool[ArrayLike, ""],
-        *,
-        substep: Substep | None = None,
-    ):
-        pair = _partitioned(terms)
-        if pair is not None:
-            return StormerVerlet(self.compensated).step(
-                pair, t0, t1, y0, args, solver_state, made_jump, substep=substep
-            )
-        return implicit_vi_step(
-            TrapezoidalRule(),
+    def method_step(
+        self, step: StepInputs, state: PyTree, made_jump: Bool[ArrayLike, ""]
+    ) -> MethodStep:
+        lagrangian = step.term.lagrangian
+        if isinstance(lagrangian, AbstractSeparableLagrangian):
+            return self._explicit_step(step, state, made_jump)
+        assert isinstance(state, Unknowns)
+        return solve_step(
+            step,
+            state,
+            made_jump,
+            lambda v: legendre_residual(
+                _RULE, lagrangian, step.t0, step.h, step.q0, step.p0, v, step.args
+            ),
+            lambda v: legendre_increments(
+                _RULE, lagrangian, step.t0, step.h, step.q0, v, step.args
+            ),
             self.root_finder,
             self.root_find_max_steps,
-            terms,
-            "TrapezoidalVI",
-            t0,
-            t1,
-            y0,
-            args,
-            solver_state,
-            made_jump,
-            substep,
         )
 
-    def func(self, terms, t0, y0, args):
-        return terms.vf(t0, y0, args)
+    def _explicit_step(self, step: StepInputs, force0, made_jump) -> MethodStep:
+        # After a jump the cached force belongs to the state before the jump.
+        force0 = jax.lax.cond(
+            unvmap_any(made_jump),
+            lambda: poisoned_force(_force(step, step.t0, step.q0), (step.q0, step.p0)),
+            lambda: force0,
+        )
+        h = step.h
+        mass = broadcast_mass(step.term.lagrangian.mass, step.p0)
+        dq, kick0, kick1, force1 = kick_drift_kick(
+            step.p0,
+            force0,
+            kick=lambda g: jtu.tree_map(lambda x: 0.5 * h * x, g),
+            drift=lambda p: jtu.tree_map(lambda m, x: h * x / m, mass, p),
+            force=lambda q: _force(step, step.t1, q),
+            end_position=step.end_position,
+        )
+        dp = jtu.tree_map(lambda a, b: a + b, kick0, kick1)
+        v = jtu.tree_map(lambda x: x / h, dq)
+        # The engine checks the new state for NaN and inf.
+        return MethodStep(dq, dp, v, force1, dfx.RESULTS.successful)
 
 
-TrapezoidalVI.__init__.__doc__ = """**Arguments:**
-
-- `root_finder`: an `optimistix.AbstractRootFinder` for the implicit step of a
-    non-separable Lagrangian. Defaults to `optimistix.Newton` with
-    `rtol = atol = sqrt(eps)` of the state's dtype.
-- `root_find_max_steps`: iterations after which a step is reported as failed.
-- `compensated`: compensated (Kahan) summation of each step's increment (default).
-"""
+TrapezoidalVI.__init__.__doc__ = "**Arguments:**\n\n" + IMPLICIT_ARGS_DOC

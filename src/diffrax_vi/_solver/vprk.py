@@ -1,47 +1,68 @@
-import abc
+r"""Variational partitioned Runge–Kutta methods: a method is its tableau.
+
+The discrete Lagrangian $L_d = h\sum_i b_i L(t_0 + c_i h, Q_i, V_i)$ with
+$Q_i = q_0 + h\sum_j a_{ij} V_j$, extremised over the stage velocities with
+$q_1 = q_0 + h\sum_i b_i V_i$ (the symplectic partitioned Runge–Kutta methods of
+Marsden & West (2001), Part 2), gives the stage
+equations
+
+$$\frac{\partial L}{\partial v}(Q_i, V_i) = p_0 + h\sum_j \bar a_{ij}
+\frac{\partial L}{\partial q}(Q_j, V_j),\qquad
+q_1 = q_0 + h\sum_i b_i V_i,\quad p_1 = p_0 + h\sum_i b_i
+\frac{\partial L}{\partial q}(Q_i, V_i),$$
+
+with $b_i \bar a_{ij} + b_j a_{ji} = b_i b_j$: the symplecticity condition, which every
+tableau is checked against when it is built.
+"""
+
 import dataclasses
 import functools
 
-import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
-from jaxtyping import ArrayLike, Bool, PyTree
+from equinox import AbstractVar
+from jaxtyping import PyTree
 
-from .._custom_types import Args, RealScalarLike
+from .._custom_types import P, Q, V
 from .._lagrangian import lagrangian_value
-from .._misc import (
-    all_finite,
-    default_root_finder,
-    momentum_scale,
-    split_state,
-    state_dtype,
-)
-from .base import (
-    AbstractSymmetricSolver,
-    AbstractSymplecticSolver,
-    AbstractVariationalSolver,
-    compensated_add,
-    hermite_dense_info,
-    implicit_vi_init,
-    step_result,
-    step_times,
-    Substep,
-    unwrap_term,
-)
+from .base import StepInputs
+from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC
 
 
-@dataclasses.dataclass(frozen=True)
+# Past this many stages the construction below is not checked to round-off, and the
+# order 2s is far beyond what any floating dtype can resolve.
+MAX_STAGES = 24
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
 class VPRKTableau:
     r"""The coefficients of a variational partitioned Runge–Kutta method (not a
-    pytree): $a$ for the positions, $\bar a$ for the momenta, weights $b$, nodes $c$.
+    pytree): $a$ for the positions, $\bar a$ for the momenta, weights $b$, nodes $c$,
+    and the method's classical order.
 
     Validated when built: $c = a\mathbf 1$, $\sum_i b_i = 1$, every $b_i \ne 0$ (the
-    discrete Lagrangian $h\sum_i b_i L(Q_i, \dot Q_i)$ must see every stage), and the
-    symplecticity condition $b_i \bar a_{ij} + b_j a_{ji} = b_i b_j$.
+    discrete Lagrangian $h\sum_i b_i L(Q_i, V_i)$ must see every stage), and the
+    symplecticity condition $b_i \bar a_{ij} + b_j a_{ji} = b_i b_j$. Two tableaus are
+    equal when their coefficients are.
+
+    !!! example
+
+        The 2-stage Lobatto IIIA–IIIB pair, typed by hand:
+
+        ```python
+        tableau = diffrax_vi.VPRKTableau(
+            a=np.array([[0.0, 0.0], [0.5, 0.5]]),
+            a_bar=np.array([[0.5, 0.0], [0.5, 0.0]]),
+            b=np.array([0.5, 0.5]),
+            c=np.array([0.0, 1.0]),
+            order=2,
+        )
+        solver = diffrax_vi.VPRK(tableau)
+        ```
     """
 
     a: np.ndarray
@@ -51,9 +72,22 @@ class VPRKTableau:
     order: int
 
     def __post_init__(self):
-        s = self.b.shape[0]
-        if self.a.shape != (s, s) or self.a_bar.shape != (s, s) or self.c.shape != (s,):
-            raise ValueError("VPRK tableau arrays have inconsistent shapes.")
+        for name in ("a", "a_bar", "b", "c"):
+            value = np.asarray(getattr(self, name), dtype=np.float64)
+            object.__setattr__(self, name, value)
+        s = self.b.shape[0] if self.b.ndim == 1 else -1
+        if s < 1 or self.a.shape != (s, s) or self.a_bar.shape != (s, s):
+            raise ValueError(
+                "VPRK tableau arrays have inconsistent shapes: b and c need shape "
+                f"(s,) and a, a_bar shape (s, s); got a {self.a.shape}, a_bar "
+                f"{self.a_bar.shape}, b {self.b.shape}, c {self.c.shape}."
+            )
+        if self.c.shape != (s,):
+            raise ValueError(f"VPRK tableau: c has shape {self.c.shape}, not ({s},).")
+        if not isinstance(self.order, int) or self.order < 1:
+            raise ValueError(
+                f"VPRK tableau: order must be a positive int, got {self.order!r}."
+            )
         if not np.allclose(self.a.sum(axis=1), self.c, atol=1e-13):
             raise ValueError("VPRK tableau: the nodes c must be the row sums of a.")
         if not np.isclose(self.b.sum(), 1.0, atol=1e-13):
@@ -71,14 +105,63 @@ class VPRKTableau:
                 f"(largest defect {np.max(np.abs(defect)):.1e})."
             )
 
+    @property
+    def stages(self) -> int:
+        return self.b.shape[0]
 
-def _collocation(c: np.ndarray) -> np.ndarray:
-    """`a` with the simplifying assumption C(s): sum_j a_ij c_j^(k-1) = c_i^k / k."""
+    @property
+    def symmetric(self) -> bool:
+        r"""Whether the method is symmetric: $c_{s+1-i} = 1 - c_i$,
+        $b_{s+1-i} = b_i$, and $a_{s+1-i,s+1-j} + a_{ij} = b_j$ (likewise
+        $\bar a$)."""
+        rev = slice(None, None, -1)
+        return bool(
+            np.allclose(self.c[rev], 1 - self.c, atol=1e-13)
+            and np.allclose(self.b[rev], self.b, atol=1e-13)
+            and np.allclose(self.a[rev, rev] + self.a, self.b[None], atol=1e-13)
+            and np.allclose(self.a_bar[rev, rev] + self.a_bar, self.b[None], atol=1e-13)
+        )
+
+    def _key(self):
+        arrays = (self.a, self.a_bar, self.b, self.c)
+        return (self.order,) + tuple(x.tobytes() for x in arrays)
+
+    def __eq__(self, other):
+        return isinstance(other, VPRKTableau) and self._key() == other._key()
+
+    def __hash__(self):
+        return hash(self._key())
+
+
+def _lagrange_integrals(c: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """`M[i, j]`, the integral of the Lagrange basis polynomial `l_j` on the nodes `c`
+    over `[lo[i], hi[i]]`, by Gauss–Legendre quadrature (exact for its degree). Unlike
+    a solve with the Vandermonde matrix of `c`, this stays at round-off for every
+    `s <= MAX_STAGES` (the Vandermonde solve lost 1e-10 by s = 12)."""
     s = c.shape[0]
-    k = np.arange(1, s + 1)
-    vandermonde = c[None, :] ** (k[:, None] - 1)  # [k, j]
-    rhs = c[:, None] ** k[None, :] / k[None, :]  # [i, k]
-    return np.linalg.solve(vandermonde, rhs.T).T
+    x, w = np.polynomial.legendre.leggauss(s)
+    taus = lo[:, None] + (hi - lo)[:, None] * (x[None, :] + 1) / 2  # [i, k]
+    weights = (hi - lo)[:, None] * w[None, :] / 2
+    ell = np.ones((s, s, s))  # [i, k, j]
+    for j in range(s):
+        for m in range(s):
+            if m != j:
+                ell[:, :, j] *= (taus - c[m]) / (c[j] - c[m])
+    return np.einsum("ik,ikj->ij", weights, ell)
+
+
+def _stage_count(s, method: str, least: int) -> int:
+    if isinstance(s, bool) or not isinstance(s, int | np.integer):
+        raise ValueError(
+            f"{method}(s) needs a Python int number of stages, got {s!r} of type "
+            f"{type(s).__name__}: the tableau is built at trace time."
+        )
+    if not least <= s <= MAX_STAGES:
+        raise ValueError(
+            f"{method} needs {least} <= s <= {MAX_STAGES} stages, got {s}. Past "
+            f"{MAX_STAGES} stages the order is far beyond what float64 resolves."
+        )
+    return int(s)
 
 
 @functools.cache
@@ -86,28 +169,26 @@ def gauss_tableau(s: int) -> VPRKTableau:
     """Gauss–Legendre collocation, order 2s; its own momentum coefficients."""
     x, w = np.polynomial.legendre.leggauss(s)
     c, b = (x + 1) / 2, w / 2
-    a = _collocation(c)
+    a = _lagrange_integrals(c, np.zeros(s), c)
     return VPRKTableau(a=a, a_bar=a, b=b, c=c, order=2 * s)
 
 
 @functools.cache
 def lobatto_tableau(s: int) -> VPRKTableau:
-    """Lobatto IIIA for the positions and IIIB for the momenta, order 2s - 2.
+    r"""Lobatto IIIA for the positions and IIIB for the momenta, order 2s - 2.
 
     IIIB is built from its own defining condition D(s),
-    sum_i b_i c_i^(k-1) abar_ij = b_j (1 - c_j^k) / k, so the symplecticity check of
-    the tableau tests the pair rather than restating it.
+    $\bar a_{ij} = (b_j / b_i)\int_{c_j}^1 \ell_i$, so the symplecticity check of the
+    tableau tests the pair rather than restating it.
     """
     interior = np.polynomial.legendre.Legendre.basis(s - 1).deriv().roots()
     x = np.concatenate([[-1.0], np.sort(interior), [1.0]])
     p = np.polynomial.legendre.Legendre.basis(s - 1)(x)
     w = 2 / (s * (s - 1) * p**2)
     c, b = (x + 1) / 2, w / 2
-    a = _collocation(c)
-    k = np.arange(1, s + 1)
-    weights = b[None, :] * c[None, :] ** (k[:, None] - 1)  # [k, i]
-    rhs = b[None, :] * (1 - c[None, :] ** k[:, None]) / k[:, None]  # [k, j]
-    a_bar = np.linalg.solve(weights, rhs)
+    a = _lagrange_integrals(c, np.zeros(s), c)
+    tail = _lagrange_integrals(c, c, np.ones(s))  # tail[j, i] = int_{c_j}^1 l_i
+    a_bar = b[None, :] * tail.T / b[:, None]
     return VPRKTableau(a=a, a_bar=a_bar, b=b, c=c, order=2 * s - 2)
 
 
@@ -118,122 +199,54 @@ def _combine(coefficients: np.ndarray, stacked: PyTree) -> PyTree:
     )
 
 
-class AbstractVPRK(
-    AbstractVariationalSolver, AbstractSymplecticSolver, AbstractSymmetricSolver
-):
+class AbstractVPRK(AbstractImplicitVI):
     r"""Variational partitioned Runge–Kutta methods on a
-    [`diffrax_vi.LagrangianTerm`][]. The discrete Lagrangian is
-    $L_d = h\sum_i b_i L(t_0 + c_i h, Q_i, V_i)$ with
-    $Q_i = q_0 + h\sum_j a_{ij} V_j$, which gives the stage equations
+    [`diffrax_vi.LagrangianTerm`][], defined by their
+    [`diffrax_vi.VPRKTableau`][]: symmetric when the tableau is, symplectic always.
+    One nonlinear solve per step for the $s$ stage velocities $V$.
 
-    $$\frac{\partial L}{\partial v}(Q_i, V_i) = p_0 + h\sum_j \bar a_{ij}
-    \frac{\partial L}{\partial q}(Q_j, V_j),\qquad
-    q_1 = q_0 + h\sum_i b_i V_i,\quad p_1 = p_0 + h\sum_i b_i
-    \frac{\partial L}{\partial q}(Q_i, V_i),$$
-
-    solved for the stage velocities $V$ by Newton's method.
+    A method sets `tableau` (a class variable, a field or a property).
     """
 
-    stages: int = eqx.field(static=True)
-    root_finder: optx.AbstractRootFinder | None = None
-    root_find_max_steps: int = 16
-    compensated: bool = True
-
-    @abc.abstractmethod
-    def tableau(self) -> VPRKTableau:
-        """The method's coefficients."""
+    tableau: AbstractVar[VPRKTableau]
 
     def order(self, terms):
-        return self.tableau().order
+        return self.tableau.order
 
-    def init(
-        self,
-        terms: dfx.AbstractTerm,
-        t0: RealScalarLike,
-        t1: RealScalarLike,
-        y0: tuple[PyTree, PyTree],
-        args: Args,
-    ) -> PyTree:
-        (v0, _), compensation = implicit_vi_init(
-            terms, type(self).__name__, t0, y0, args, self.compensated
+    def stage_guess(self, step: StepInputs, v: V) -> PyTree:
+        s = self.tableau.stages
+        return jtu.tree_map(lambda x: jnp.broadcast_to(x, (s, *x.shape)), v)
+
+    def _stage_grads(self, step: StepInputs, stage_v: PyTree) -> tuple[PyTree, PyTree]:
+        tableau = self.tableau
+        h = step.h
+        stage_ts = step.t0 + jnp.asarray(tableau.c, step.dtype) * h
+        stage_q = jtu.tree_map(
+            lambda q, dq: q[None] + h * dq, step.q0, _combine(tableau.a, stage_v)
         )
-        stage_v = jtu.tree_map(lambda v: jnp.stack([v] * self.stages), v0)
-        return stage_v, compensation
-
-    def step(
-        self,
-        terms: dfx.AbstractTerm,
-        t0: RealScalarLike,
-        t1: RealScalarLike,
-        y0: tuple[PyTree, PyTree],
-        args: Args,
-        solver_state: PyTree,
-        made_jump: bool | Bool[ArrayLike, ""],
-        *,
-        substep: Substep | None = None,
-    ):
-        name = type(self).__name__
-        term, direction = unwrap_term(terms, name)
-        lagrangian = term.lagrangian
-        q0, p0 = split_state(y0)
-        dtype = state_dtype(y0)
-        tp0, tp1, h = step_times(terms, direction, t0, t1, dtype, substep)
-        tableau = self.tableau()
-        root_finder = self.root_finder or default_root_finder(dtype)
-        stage_v_prev, compensation = solver_state
-        stage_ts = tp0 + jnp.asarray(tableau.c, dtype) * h
-
-        def stage_grads(stage_v):
-            stage_q = jtu.tree_map(
-                lambda q, dq: q[None] + h * dq, q0, _combine(tableau.a, stage_v)
-            )
-            grad = jax.grad(
-                lambda t, q, v: lagrangian_value(lagrangian, t, q, v, args),
-                argnums=(1, 2),
-            )
-            return jax.vmap(grad)(stage_ts, stage_q, stage_v)
-
-        scale = momentum_scale(p0)
-
-        def residual(stage_v, _):
-            dl_dq, dl_dv = stage_grads(stage_v)
-            kicks = _combine(tableau.a_bar, dl_dq)
-            return jtu.tree_map(
-                lambda pv, p, k: (pv - p[None] - h * k) / scale, dl_dv, p0, kicks
-            )
-
-        sol = optx.root_find(
-            residual,
-            root_finder,
-            stage_v_prev,
-            max_steps=self.root_find_max_steps,
-            throw=False,
+        grad = jax.grad(
+            lambda t, q, v: lagrangian_value(step.term.lagrangian, t, q, v, step.args),
+            argnums=(1, 2),
         )
-        stage_v = sol.value
-        dl_dq, _ = stage_grads(stage_v)
-        dq = jtu.tree_map(lambda x: h * x, _combine(tableau.b, stage_v))
-        dp = jtu.tree_map(lambda x: h * x, _combine(tableau.b, dl_dq))
-        y1, compensation = compensated_add(y0, (dq, dp), compensation)
-        result = step_result(
-            dfx.RESULTS.promote(sol.result), y0, y1, all_finite(stage_v_prev)
+        return jax.vmap(grad)(stage_ts, stage_q, stage_v)
+
+    def stage_residual(self, step: StepInputs, stage_v: PyTree) -> PyTree:
+        dl_dq, dl_dv = self._stage_grads(step, stage_v)
+        kicks = _combine(self.tableau.a_bar, dl_dq)
+        return jtu.tree_map(
+            lambda pv, p, k: pv - p[None] - step.h * k, dl_dv, step.p0, kicks
         )
-        v = jtu.tree_map(lambda x: x / h, dq)
-        dense_info = hermite_dense_info(lagrangian, tp0, tp1, h, y0, y1, args, v)
-        return y1, None, dense_info, (stage_v, compensation), result
 
-    def func(self, terms, t0, y0, args):
-        return terms.vf(t0, y0, args)
+    def stage_increments(self, step: StepInputs, stage_v: PyTree) -> tuple[Q, P]:
+        dl_dq, _ = self._stage_grads(step, stage_v)
+        b = self.tableau.b
+        dq = jtu.tree_map(lambda x: step.h * x, _combine(b, stage_v))
+        dp = jtu.tree_map(lambda x: step.h * x, _combine(b, dl_dq))
+        return dq, dp
 
 
-class GaussVPRK(AbstractVPRK):
-    r"""Variational partitioned Runge–Kutta method with `s` Gauss–Legendre stages.
-
-    Order $2s$, symmetric, symplectic; conserves every quadratic first integral. One
-    nonlinear solve for $s$ stage velocities per step. Fixed step sizes only. Cubic
-    Hermite interpolation for dense output. `GaussVPRK(1)` is
-    [`diffrax_vi.MidpointVI`][].
-
-    ??? cite "Reference"
+_VPRK_REFERENCES = r"""
+    ??? cite "References"
 
         ```bibtex
         @article{marsden2001discrete,
@@ -252,51 +265,107 @@ class GaussVPRK(AbstractVPRK):
             year={2006},
         }
         ```
-    """
+"""
+
+
+class VPRK(AbstractVPRK):
+    __doc__ = (
+        r"""The variational partitioned Runge–Kutta method of any valid
+    [`diffrax_vi.VPRKTableau`][].
+
+    Symplectic; symmetric and of the tableau's order when the tableau is. One
+    nonlinear solve for the $s$ stage velocities per step. Fixed step sizes only.
+    Cubic Hermite interpolation for dense output. [`diffrax_vi.GaussVPRK`][],
+    [`diffrax_vi.LobattoVPRK`][] and [`diffrax_vi.MidpointVI`][] are named tableaus.
+
+    !!! example
+
+        ```python
+        solver = diffrax_vi.VPRK(diffrax_vi.GaussVPRK(2).tableau)  # = GaussVPRK(2)
+        ```
+"""
+        + _VPRK_REFERENCES
+    )
+
+    tableau: VPRKTableau = eqx.field(static=True)
+    root_finder: optx.AbstractRootFinder | None = None
+    root_find_max_steps: int = 16
+    compensated: bool = True
 
     def __check_init__(self):
-        if self.stages < 1:
-            raise ValueError(f"GaussVPRK needs s >= 1 stages, got {self.stages}.")
+        if not isinstance(self.tableau, VPRKTableau):
+            raise ValueError(
+                f"VPRK(tableau) takes a diffrax_vi.VPRKTableau, got "
+                f"{type(self.tableau).__name__}."
+            )
 
+
+class GaussVPRK(AbstractVPRK):
+    __doc__ = (
+        r"""Variational partitioned Runge–Kutta method with `s` Gauss–Legendre
+    stages.
+
+    Order $2s$, symmetric, symplectic; conserves every quadratic first integral. One
+    nonlinear solve for $s$ stage velocities per step. Fixed step sizes only. Cubic
+    Hermite interpolation for dense output. `GaussVPRK(1)` is
+    [`diffrax_vi.MidpointVI`][].
+"""
+        + _VPRK_REFERENCES
+    )
+
+    stages: int = eqx.field(
+        static=True,
+        converter=functools.partial(_stage_count, method="GaussVPRK", least=1),
+    )
+    root_finder: optx.AbstractRootFinder | None = None
+    root_find_max_steps: int = 16
+    compensated: bool = True
+
+    @property
     def tableau(self) -> VPRKTableau:
         return gauss_tableau(self.stages)
 
 
 class LobattoVPRK(AbstractVPRK):
-    r"""Variational partitioned Runge–Kutta method with `s` Lobatto stages: Lobatto
-    IIIA for the positions, IIIB for the momenta.
+    __doc__ = (
+        r"""Variational partitioned Runge–Kutta method with `s` Lobatto stages:
+    Lobatto IIIA for the positions, IIIB for the momenta.
 
-    Order $2s - 2$, symmetric, symplectic. One nonlinear solve per step.
-    `LobattoVPRK(2)` is [`diffrax_vi.TrapezoidalVI`][] (Störmer–Verlet for a separable
-    Lagrangian). Fixed step sizes only. Cubic Hermite interpolation for dense output.
+    Order $2s - 2$, symmetric, symplectic. One nonlinear solve per step. For a
+    separable Lagrangian `LobattoVPRK(2)` is Störmer–Verlet, like
+    [`diffrax_vi.TrapezoidalVI`][] (for a configuration-dependent mass the two are
+    different second-order methods). Fixed step sizes only. Cubic Hermite
+    interpolation for dense output.
+"""
+        + _VPRK_REFERENCES
+    )
 
-    ??? cite "Reference"
+    stages: int = eqx.field(
+        static=True,
+        converter=functools.partial(_stage_count, method="LobattoVPRK", least=2),
+    )
+    root_finder: optx.AbstractRootFinder | None = None
+    root_find_max_steps: int = 16
+    compensated: bool = True
 
-        ```bibtex
-        @book{hairer2006geometric,
-            title={Geometric Numerical Integration},
-            author={Hairer, Ernst and Lubich, Christian and Wanner, Gerhard},
-            edition={2},
-            publisher={Springer},
-            year={2006},
-        }
-        ```
-    """
-
-    def __check_init__(self):
-        if self.stages < 2:
-            raise ValueError(f"LobattoVPRK needs s >= 2 stages, got {self.stages}.")
-
+    @property
     def tableau(self) -> VPRKTableau:
         return lobatto_tableau(self.stages)
 
 
-_ARGS_DOC = """**Arguments:**
+_ARGS_DOC = (
+    """**Arguments:**
 
-- `stages`: the number of stages `s`.
-- `root_finder`, `root_find_max_steps`: as for [`diffrax_vi.MidpointVI`][].
-- `compensated`: compensated (Kahan) summation of the step's increment, so that
-    round-off in the energy grows like the square root of the number of steps.
+- `stages`: the number of stages `s`, a Python int.
 """
+    + IMPLICIT_ARGS_DOC
+)
 GaussVPRK.__init__.__doc__ = _ARGS_DOC
 LobattoVPRK.__init__.__doc__ = _ARGS_DOC
+VPRK.__init__.__doc__ = (
+    """**Arguments:**
+
+- `tableau`: a [`diffrax_vi.VPRKTableau`][].
+"""
+    + IMPLICIT_ARGS_DOC
+)

@@ -1,0 +1,34 @@
+"""Every private API of diffrax and equinox that this package relies on, in one place.
+
+`tests/test_private_api.py` checks each assumption made here, so that an upgrade that
+changes one fails there, loudly, rather than somewhere inside a solve.
+"""
+
+import diffrax as dfx
+import equinox.internal as eqxi
+from diffrax._term import WrapTerm  # `diffeqsolve` hands solvers this, not our term.
+from jaxtyping import ArrayLike, Bool
+
+
+__all__ = ["WrapTerm", "NoForwardingSolverMeta", "unvmap_any"]
+
+
+_SolverMeta = type(dfx.AbstractSolver)
+
+
+class NoForwardingSolverMeta(_SolverMeta):
+    """The metaclass of this package's capability markers.
+
+    diffrax's solver metaclass forwards `isinstance` through wrappers:
+    `isinstance(diffrax.HalfSolver(s), C)` is true whenever `isinstance(s, C)` is. For
+    a capability such as symplecticity that is wrong (step doubling with adaptive
+    steps is not symplectic), so the markers answer for the object itself."""
+
+    def __instancecheck__(cls, obj):
+        return super(_SolverMeta, cls).__instancecheck__(obj)
+
+
+def unvmap_any(x: bool | Bool[ArrayLike, "..."]) -> Bool[ArrayLike, ""]:
+    """True if `x` is true in any batch element: lets a branch stay a real branch under
+    `jax.vmap` instead of becoming a select that evaluates both sides."""
+    return eqxi.unvmap_any(x)
