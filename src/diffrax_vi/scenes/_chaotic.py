@@ -1,32 +1,54 @@
 import math
 
-import equinox as eqx
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
 from .._lagrangian import AbstractQuadraticLagrangian, AbstractSeparableLagrangian
+from ._one_dof import parameter
 from ._scene import Scene
 
 
 class DoublePendulumLagrangian(AbstractQuadraticLagrangian):
-    r"""The planar double pendulum with unit masses, lengths and gravity, in the
-    absolute angles $q = (\theta_1, \theta_2)$:
-    $L = v_1^2 + \tfrac12 v_2^2 + v_1 v_2 \cos(\theta_1 - \theta_2)
-    + 2\cos\theta_1 + \cos\theta_2$. Not separable: its mass matrix depends on $q$."""
+    r"""The planar double pendulum (point masses $m_1, m_2$ on massless rods of
+    lengths $\ell_1, \ell_2$, gravity $g$; all 1 by default) in the absolute angles
+    $q = (\theta_1, \theta_2)$:
+
+    $$L = \tfrac12 (m_1 + m_2)\ell_1^2 v_1^2 + \tfrac12 m_2 \ell_2^2 v_2^2
+    + m_2 \ell_1 \ell_2 v_1 v_2 \cos(\theta_1 - \theta_2)
+    + (m_1 + m_2) g \ell_1 \cos\theta_1 + m_2 g \ell_2 \cos\theta_2.$$
+
+    Not separable: its mass matrix depends on $q$."""
+
+    m1: Float[Array, ""] = parameter(1.0)
+    m2: Float[Array, ""] = parameter(1.0)
+    l1: Float[Array, ""] = parameter(1.0)
+    l2: Float[Array, ""] = parameter(1.0)
+    g: Float[Array, ""] = parameter(1.0)
 
     def __call__(self, t, q, v, args):
-        kinetic = v[0] ** 2 + 0.5 * v[1] ** 2 + v[0] * v[1] * jnp.cos(q[0] - q[1])
-        return kinetic + 2 * jnp.cos(q[0]) + jnp.cos(q[1])
+        m12 = self.m1 + self.m2
+        kinetic = (
+            0.5 * m12 * self.l1**2 * v[0] ** 2
+            + 0.5 * self.m2 * self.l2**2 * v[1] ** 2
+            + self.m2 * self.l1 * self.l2 * v[0] * v[1] * jnp.cos(q[0] - q[1])
+        )
+        potential = -self.g * (
+            m12 * self.l1 * jnp.cos(q[0]) + self.m2 * self.l2 * jnp.cos(q[1])
+        )
+        return kinetic - potential
 
 
 class HenonHeilesLagrangian(AbstractSeparableLagrangian):
     r"""The Hénon–Heiles potential,
-    $V = \tfrac12(x^2 + y^2) + x^2 y - y^3/3$, unit mass."""
+    $V = \tfrac12(x^2 + y^2) + \lambda(x^2 y - y^3/3)$, with coupling $\lambda = 1$
+    and unit mass by default."""
 
-    mass: float = eqx.field(static=True, default=1.0)
+    coupling: Float[Array, ""] = parameter(1.0)
+    mass: Float[Array, ""] = parameter(1.0)
 
     def potential(self, t, q, args):
         x, y = q[0], q[1]
-        return 0.5 * (x**2 + y**2) + x**2 * y - y**3 / 3
+        return 0.5 * (x**2 + y**2) + self.coupling * (x**2 * y - y**3 / 3)
 
 
 def double_pendulum(angle: float = math.pi / 2) -> Scene:

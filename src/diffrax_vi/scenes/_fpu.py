@@ -1,9 +1,10 @@
 import math
 
-import equinox as eqx
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
 from .._lagrangian import AbstractSeparableLagrangian
+from ._one_dof import parameter
 from ._scene import Scene
 
 
@@ -15,8 +16,8 @@ class FPULagrangian(AbstractSeparableLagrangian):
     + \sum_{i=0}^m (q_{2i+1} - q_{2i})^4.$$
     The stiff springs oscillate with frequency $\omega$."""
 
-    omega: float = eqx.field(static=True, default=50.0)
-    mass: float = eqx.field(static=True, default=1.0)
+    omega: Float[Array, ""] = parameter(50.0)
+    mass: Float[Array, ""] = parameter(1.0)
 
     def potential(self, t, q, args):
         stiff = q[1::2] - q[0::2]

@@ -1,21 +1,23 @@
 import math
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
 from .._lagrangian import AbstractSeparableLagrangian
+from ._one_dof import parameter
 from ._scene import Scene
 
 
 class KeplerLagrangian(AbstractSeparableLagrangian):
-    r"""The Kepler problem in the plane, $L = \tfrac12 |v|^2 + 1/|q|$
-    (unit masses and gravitational constant)."""
+    r"""The Kepler problem in the plane, $L = \tfrac12 m|v|^2 + \mu m/|q|$, with
+    gravitational parameter $\mu = 1$ and unit mass by default."""
 
-    mass: float = eqx.field(static=True, default=1.0)
+    mu: Float[Array, ""] = parameter(1.0)
+    mass: Float[Array, ""] = parameter(1.0)
 
     def potential(self, t, q, args):
-        return -1 / jnp.sqrt(jnp.sum(q**2))
+        return -self.mu * self.mass / jnp.sqrt(jnp.sum(q**2))
 
 
 def _angular_momentum(t, y, args):

@@ -22,10 +22,13 @@ class LearnedLagrangian(AbstractSeparableLagrangian):
     integrator conserves its energy however well or badly it has been trained."""
 
     net: eqx.nn.MLP
-    mass: float = eqx.field(static=True, default=1.0)
+    mass: Float[Array, ""]
 
-    def __init__(self, key: PRNGKeyArray, width: int = 16, depth: int = 2):
+    def __init__(
+        self, key: PRNGKeyArray, width: int = 16, depth: int = 2, mass: float = 1.0
+    ):
         self.net = eqx.nn.MLP("scalar", "scalar", width, depth, jax.nn.tanh, key=key)
+        self.mass = jnp.asarray(mass)
 
     def potential(self, t, q, args):
         return self.net(q)
@@ -63,10 +66,14 @@ def fit_potential(
     started from `y0s`, reproduces the observed positions `qs` at `ts` (least squares,
     by BFGS through the differentiated solver). Returns the fitted model and its final
     mean squared error."""
-    params, static = eqx.partition(model, eqx.is_inexact_array)
+    # Only the network is fitted, not the mass.
+    params, static = eqx.partition(model.net, eqx.is_inexact_array)
+
+    def with_net(params):
+        return eqx.tree_at(lambda m: m.net, model, eqx.combine(params, static))
 
     def loss(params, _):
-        fitted = eqx.combine(params, static)
+        fitted = with_net(params)
         return jnp.mean((_trajectories(fitted, MidpointVI(), y0s, ts) - qs) ** 2)
 
     sol = optx.minimise(
@@ -76,7 +83,7 @@ def fit_potential(
         max_steps=max_steps,
         throw=False,
     )
-    return eqx.combine(sol.value, static), loss(sol.value, None)
+    return with_net(sol.value), loss(sol.value, None)
 
 
 @functools.cache

@@ -2,55 +2,66 @@ import math
 
 import equinox as eqx
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
 from .._lagrangian import AbstractSeparableLagrangian
 from ._scene import agm, Scene
 
 
-class FallingParticleLagrangian(AbstractSeparableLagrangian):
-    r"""A particle in uniform gravity, $L = \tfrac12 v^2 - g q$ (unit mass)."""
+def parameter(default: float):
+    """A numeric parameter of a scene: an array leaf, so that `jax.grad` reaches it,
+    `jax.vmap` can batch it and a dtype cast converts it."""
+    return eqx.field(converter=jnp.asarray, default=default)
 
-    g: float = eqx.field(static=True, default=9.81)
-    mass: float = eqx.field(static=True, default=1.0)
+
+class FallingParticleLagrangian(AbstractSeparableLagrangian):
+    r"""A particle of mass $m$ in uniform gravity, $L = \tfrac12 m v^2 - m g q$."""
+
+    g: Float[Array, ""] = parameter(9.81)
+    mass: Float[Array, ""] = parameter(1.0)
 
     def potential(self, t, q, args):
-        return self.g * q
+        return self.mass * self.g * q
 
 
 class OscillatorLagrangian(AbstractSeparableLagrangian):
-    r"""The harmonic oscillator, $L = \tfrac12 v^2 - \tfrac12 \omega^2 q^2$."""
+    r"""The harmonic oscillator,
+    $L = \tfrac12 m v^2 - \tfrac12 m \omega^2 q^2$."""
 
-    omega: float = eqx.field(static=True, default=1.0)
-    mass: float = eqx.field(static=True, default=1.0)
+    omega: Float[Array, ""] = parameter(1.0)
+    mass: Float[Array, ""] = parameter(1.0)
 
     def potential(self, t, q, args):
-        return 0.5 * self.omega**2 * q**2
+        return 0.5 * self.mass * self.omega**2 * q**2
 
 
 class DuffingLagrangian(AbstractSeparableLagrangian):
-    r"""The seed thesis's unforced, undamped Duffing oscillator,
-    $L = \tfrac12 v^2 + \tfrac12 q^2 - \tfrac14 q^4$: a double well with minima at
-    $q = \pm 1$."""
+    r"""The unforced, undamped Duffing oscillator of Hirani (2000), §5.3,
+    $L = \tfrac12 m v^2 + \tfrac12 \alpha q^2 - \tfrac14 \beta q^4$ (all 1 there): a
+    double well with minima at $q = \pm\sqrt{\alpha/\beta}$."""
 
-    mass: float = eqx.field(static=True, default=1.0)
+    alpha: Float[Array, ""] = parameter(1.0)
+    beta: Float[Array, ""] = parameter(1.0)
+    mass: Float[Array, ""] = parameter(1.0)
 
     def potential(self, t, q, args):
-        return -0.5 * q**2 + 0.25 * q**4
+        return -0.5 * self.alpha * q**2 + 0.25 * self.beta * q**4
 
 
 class PendulumLagrangian(AbstractSeparableLagrangian):
-    r"""The plane pendulum, $L = \tfrac12 v^2 + \cos q$ (unit length, mass and
-    gravity)."""
+    r"""The plane pendulum of unit length, $L = m(\tfrac12 v^2 + g\cos q)$ (unit
+    mass and gravity by default)."""
 
-    mass: float = eqx.field(static=True, default=1.0)
+    g: Float[Array, ""] = parameter(1.0)
+    mass: Float[Array, ""] = parameter(1.0)
 
     def potential(self, t, q, args):
-        return -jnp.cos(q)
+        return -self.mass * self.g * jnp.cos(q)
 
 
 def falling_particle(g: float = 9.81) -> Scene:
     r"""A particle thrown upwards in uniform gravity from $q_0 = 2$, $p_0 = 3$ (the
-    seed thesis's example 5.2). The exact solution $q_0 + p_0 t - g t^2/2$ is
+    example of Hirani (2000), §5.1). The exact solution $q_0 + p_0 t - g t^2/2$ is
     quadratic in $t$, so both the DEL equations and their linearization reproduce it
     up to round-off. Time scale 1."""
     q0, p0 = 2.0, 3.0
@@ -84,8 +95,8 @@ def oscillator(omega: float = 1.0) -> Scene:
 
 
 def duffing(q0: float = 0.5) -> Scene:
-    r"""The seed thesis's Duffing oscillator from rest at $q_0$ (default 0.5, inside
-    the right-hand well). The motion is periodic between the roots
+    r"""The Duffing oscillator of Hirani (2000), §5.3, from rest at $q_0$ (default
+    0.5, inside the right-hand well). The motion is periodic between the roots
     $q_\pm^2 = 1 \pm \sqrt{1 + 4E}$ of $V(q) = E$, with period
     $\sqrt2\,\pi / \operatorname{agm}(q_+, q_-)$ (a complete elliptic integral)."""
     e = -0.5 * q0**2 + 0.25 * q0**4

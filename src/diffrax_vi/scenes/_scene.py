@@ -39,7 +39,7 @@ class Scene(eqx.Module):
         lagrangian = self.lagrangian
 
         def _energy(t, y, args):
-            return energy(lagrangian, t, y[0], y[1], args)
+            return energy(lagrangian, t, y, args)
 
         return {"energy": _energy, **self.invariants}
 

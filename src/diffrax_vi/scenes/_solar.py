@@ -49,8 +49,8 @@ class NBodyLagrangian(AbstractSeparableLagrangian):
     r"""Newtonian gravity, $L = \sum_i \tfrac12 m_i |v_i|^2
     + G \sum_{i<j} m_i m_j / |q_i - q_j|$, with `q` of shape `(bodies, 3)`."""
 
-    mass: Float[Array, "bodies 1"]
-    gravitational_constant: float = eqx.field(static=True)
+    mass: Float[Array, "bodies 1"] = eqx.field(converter=jnp.asarray)
+    gravitational_constant: Float[Array, ""] = eqx.field(converter=jnp.asarray)
 
     def potential(self, t, q, args):
         m = self.mass[:, 0]

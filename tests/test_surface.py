@@ -1,0 +1,175 @@
+"""The public surface: differentiable scenes, no import-time side effects, the command
+line as a public module, and the private diffrax API this package relies on."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import diffrax as dfx
+import diffrax_vi as dvi
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.random as jr
+import numpy as np
+import pytest
+from diffrax_vi import scenes
+from diffrax_vi._private_api import NoForwardingSolverMeta, unvmap_any, WrapTerm
+
+
+def _scene_lagrangians():
+    made = {name: make() for name, make in scenes.SCENES.items() if name != "learned"}
+    made["learned"] = scenes.Scene(
+        name="learned",
+        lagrangian=scenes.LearnedLagrangian(jr.key(0), width=4, depth=1),
+        y0=(jnp.array(1.5), jnp.array(0.0)),
+        period=7.0,
+    )
+    return made
+
+
+SCENE_LIST = list(_scene_lagrangians().items())
+
+
+def _final_sum(lagrangian, scene):
+    # TrapezoidalVI: explicit for the separable scenes, Newton for the double pendulum.
+    h = scene.period / 50
+    sol = dfx.diffeqsolve(
+        dvi.LagrangianTerm(lagrangian),
+        dvi.TrapezoidalVI(),
+        0.0,
+        10 * h,
+        h,
+        scene.y0,
+        max_steps=10,
+    )
+    return sum(jnp.sum(y[-1]) for y in jax.tree.leaves(sol.ys))
+
+
+@pytest.mark.parametrize("name,scene", SCENE_LIST, ids=[n for n, _ in SCENE_LIST])
+def test_scene_parameters_are_differentiable(name, scene, getkey):
+    params, static = eqx.partition(scene.lagrangian, eqx.is_inexact_array)
+    leaves, treedef = jax.tree.flatten(params)
+    assert leaves, f"{name} has no differentiable parameter"
+    f = jax.jit(lambda p: _final_sum(eqx.combine(p, static), scene))
+    grads = jax.tree.leaves(jax.grad(f)(params))
+    for i, (leaf, grad) in enumerate(zip(leaves, grads)):
+        # The derivative along a random direction of this parameter alone, relative
+        # to each entry's size (the solar masses span 1 to 1e-8).
+        noise = jr.normal(getkey(), jnp.shape(leaf), jnp.result_type(leaf))
+        direction = noise * jnp.where(leaf == 0, 1.0, jnp.abs(leaf))
+        eps = 1e-6
+
+        def shifted(s):
+            moved = list(leaves)
+            moved[i] = leaf + s * eps * direction
+            return f(jax.tree.unflatten(treedef, moved))
+
+        fd = (shifted(1.0) - shifted(-1.0)) / (2 * eps)
+        exact = jnp.sum(grad * direction)
+        assert jnp.allclose(exact, fd, rtol=1e-5, atol=1e-9 * (1 + abs(fd))), (
+            name,
+            i,
+            exact,
+            fd,
+        )
+
+
+def test_scene_parameters_vmap_and_cast():
+    # vmap over a parameter, and a dtype cast that reaches it.
+    def final_q(omega):
+        lagrangian = scenes.OscillatorLagrangian(omega=omega)
+        sol = dfx.diffeqsolve(
+            dvi.LagrangianTerm(lagrangian),
+            dvi.MidpointVI(),
+            0.0,
+            1.0,
+            0.01,
+            (jnp.array(1.0), jnp.array(0.0)),
+        )
+        return sol.ys[0][-1]
+
+    omegas = jnp.array([0.5, 1.0, 2.0])
+    qs = jax.vmap(final_q)(omegas)
+    assert np.allclose(qs, np.cos(np.asarray(omegas)), atol=1e-4)
+    from diffrax_vi.study._run import cast_scene
+
+    cast = cast_scene(scenes.kepler(), jnp.float32)
+    assert all(
+        x.dtype == jnp.float32
+        for x in jax.tree.leaves(eqx.filter(cast, eqx.is_inexact_array))
+    )
+
+
+def _run(code: str, **env) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        env={**os.environ, **env},
+    )
+
+
+def test_the_users_matplotlib_backend_is_untouched(tmp_path):
+    out = _run(
+        f"""
+        import sys
+        import matplotlib
+        matplotlib.use("svg")
+        import jax
+        jax.config.update("jax_enable_x64", True)
+        import diffrax_vi
+        from diffrax_vi import scenes, study, thesis, cli
+        from diffrax_vi.study import _plot
+        s = study.drift(scenes.oscillator(), ["StormerVerlet"], periods=1,
+                        steps_per_period=10, n_save=5)
+        s.write({str(tmp_path)!r})
+        assert matplotlib.get_backend() == "svg", matplotlib.get_backend()
+        assert "matplotlib.pyplot" not in sys.modules
+        print("ok")
+        """
+    )
+    assert out.returncode == 0, out.stderr
+    assert (tmp_path / "drift_energy.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_python_dash_m_runs_the_command_line():
+    out = subprocess.run(
+        [sys.executable, "-m", "diffrax_vi", "drift", "--help"],
+        capture_output=True,
+        text=True,
+    )
+    assert out.returncode == 0, out.stderr
+    assert "--steps-per-period" in out.stdout
+
+
+def test_private_api_assumptions():
+    """Fails loudly if a diffrax or equinox upgrade changes what `_private_api`
+    relies on."""
+    # diffeqsolve hands the solver a WrapTerm with `term` and `direction`.
+    seen = []
+
+    class Spy(dvi.StormerVerlet):
+        def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+            seen.append(terms)
+            return super().step(terms, t0, t1, y0, args, solver_state, made_jump)
+
+    pair = dvi.terms_for(
+        dvi.StormerVerlet(), dvi.SeparableLagrangian(lambda t, q, a: q)
+    )
+    dfx.diffeqsolve(pair, Spy(), 1.0, 0.0, -0.5, (jnp.array(0.0), jnp.array(1.0)))
+    wrapped = seen[0][0]
+    assert isinstance(wrapped, WrapTerm) and isinstance(wrapped.term, dfx.ODETerm)
+    assert wrapped.term.vector_field == pair[0].vector_field
+    # `direction` is the sign of t1 - t0, and the control is signed with it.
+    direct = WrapTerm(pair[0], -1)
+    assert direct.direction == -1 and float(direct.contr(-1.0, -0.5)) == -0.5
+    # diffrax's metaclass forwards isinstance through wrapped solvers; our markers'
+    # metaclass must be a subclass of it that does not.
+    assert isinstance(dfx.HalfSolver(dfx.Tsit5()), dfx.Tsit5)
+    assert issubclass(NoForwardingSolverMeta, type(dfx.AbstractSolver))
+    assert type(dvi.AbstractSymplecticSolver) is NoForwardingSolverMeta
+    # equinox's unvmap_any: the `any` over a batch, seen as one value inside vmap.
+    out = jax.vmap(lambda x: unvmap_any(x > 0))(jnp.array([-1.0, 2.0]))
+    assert out.shape == (2,) and bool(jnp.all(out))
