@@ -22,8 +22,11 @@ import jax.numpy as jnp
 jax.config.update("jax_enable_x64", True)
 from diffrax_vi import StormerVerlet  # noqa: E402
 from diffrax_vi.scenes import kepler  # noqa: E402
-from diffrax_vi.study import drift, Method  # noqa: E402
-from diffrax_vi.study._methods import make_solver  # noqa: E402
+from diffrax_vi.study import (  # noqa: E402
+    drift,
+    make_solver,  # noqa: E402
+    Method,
+)
 from diffrax_vi.study._track import max_error  # noqa: E402
 from step_cost import best_time  # noqa: E402
 

@@ -4,6 +4,8 @@ Tsit5, with the energy error of each after 10^4 steps.
 Run: `python examples/drop_in.py`.
 """
 
+import functools
+
 import diffrax
 import jax
 import jax.numpy as jnp
@@ -18,19 +20,18 @@ pendulum = diffrax_vi.SeparableLagrangian(lambda t, q, args: -jnp.cos(q))
 y0 = (jnp.array(2.0), jnp.array(0.0))
 t1, dt0, n = 1000.0, 0.1, 10_000
 saveat = diffrax.SaveAt(
-    ts=jnp.linspace(0.0, t1, 101),
-    fn=lambda t, y, args: diffrax_vi.energy(pendulum, t, y[0], y[1]),
+    ts=jnp.linspace(0.0, t1, 101), fn=functools.partial(diffrax_vi.energy, pendulum)
 )
-runs = {
-    "SemiImplicitEuler": (
-        diffrax_vi.separable_terms(pendulum),
-        diffrax.SemiImplicitEuler(),
-    ),
-    "StormerVerlet": (diffrax_vi.separable_terms(pendulum), diffrax_vi.StormerVerlet()),
-    "MidpointVI": (diffrax_vi.LagrangianTerm(pendulum), diffrax_vi.MidpointVI()),
-    "Tsit5": (diffrax_vi.LagrangianTerm(pendulum), diffrax.Tsit5()),
+solvers = {
+    "SemiImplicitEuler": diffrax.SemiImplicitEuler(),
+    "StormerVerlet": diffrax_vi.StormerVerlet(),
+    "MidpointVI": diffrax_vi.MidpointVI(),
+    "Tsit5": diffrax.Tsit5(),
 }
-for name, (terms, solver) in runs.items():
+for name, solver in solvers.items():
+    # The partitioned pair for SemiImplicitEuler and StormerVerlet, the LagrangianTerm
+    # for the others.
+    terms = diffrax_vi.terms_for(solver, pendulum)
     sol = diffrax.diffeqsolve(
         terms, solver, 0.0, t1, dt0, y0, saveat=saveat, max_steps=n + 1
     )

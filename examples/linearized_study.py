@@ -55,8 +55,8 @@ def run(lagrangian, y0, solver, h, n):
         max_steps=n,
     )
     ts, (qs, ps) = np.asarray(sol.ts), (sol.ys[0], sol.ys[1])
-    energy = jax.vmap(lambda q, p: dvi.energy(lagrangian, 0.0, q, p))(qs, ps)
-    residual = dvi.del_residuals(lagrangian, sol.ts, qs)
+    energy = jax.vmap(lambda q, p: dvi.energy(lagrangian, 0.0, (q, p)))(qs, ps)
+    residual = dvi.diagnostics.del_residuals(lagrangian, sol.ts, qs)
     return ts, np.abs(np.asarray(energy - energy[0])), np.abs(np.asarray(residual))
 
 

@@ -1,4 +1,4 @@
-"""Reproduce Chapter 5 (and Figures 1.1/1.2) of the seed thesis: A. N. Hirani,
+"""Reproduce Chapter 5 (and Figures 1.1/1.2) of Hirani (2000): A. N. Hirani,
 *Linearization methods for variational integrators and Euler-Lagrange equations*
 (Caltech, 2000). The same as `diffrax-vi seed`.
 
@@ -12,10 +12,10 @@ import jax
 
 
 jax.config.update("jax_enable_x64", True)
-from diffrax_vi.study import seed  # noqa: E402
+from diffrax_vi.thesis import chapter5  # noqa: E402
 
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="seed-results")
-    print(seed(parser.parse_args().out))
+    print(chapter5(parser.parse_args().out))

@@ -54,9 +54,9 @@ def linear_stability(out):
         "|---|---|---|---|",
     ]
     for name, solver in SOLVERS.items():
-        radius = dvi.spectral_radius(solver, grid)
-        limit = dvi.stability_limit(solver)
-        at = dvi.spectral_radius(solver, [1.0, 4.0])
+        radius = dvi.diagnostics.spectral_radius(solver, grid)
+        limit = dvi.diagnostics.stability_limit(solver)
+        at = dvi.diagnostics.spectral_radius(solver, [1.0, 4.0])
         style = "--" if name in ("Tsit5", "Dopri8") else "-"
         ax.semilogy(grid, radius, style, label=name)
         lines.append(

@@ -116,37 +116,6 @@ def fitted_order(hs, errors):
     return float(np.polyfit(np.log(np.asarray(hs)), np.log(np.asarray(errors)), 1)[0])
 
 
-@eqx.filter_jit
-def step_jacobian(terms, solver, y0, args=None, h=0.2):
-    """The Jacobian of one step of `solver` from `y0` (with `args`), flattened."""
-    flat, unravel = jax.flatten_util.ravel_pytree(y0)
-
-    def step(x):
-        y = unravel(x)
-        state = solver.init(terms, 0.0, h, y, args)
-        y1, *_ = solver.step(terms, 0.0, h, y, args, state, False)
-        return jax.flatten_util.ravel_pytree(y1)[0]
-
-    return jax.jacrev(step)(flat)
-
-
-def symplecticity_defect(terms, solver, y0, args=None, h=0.2):
-    """max |M^T J M - J| for the Jacobian M of one step of `solver` from `y0`."""
-    m = step_jacobian(terms, solver, y0, args, h)
-    n = m.shape[0] // 2
-    j = jnp.block([[jnp.zeros((n, n)), jnp.eye(n)], [-jnp.eye(n), jnp.zeros((n, n))]])
-    return float(jnp.max(jnp.abs(m.T @ j @ m - j)))
-
-
-def terms_for(lagrangian, solver):
-    """The terms `solver` takes for `lagrangian`: the partitioned pair for solvers of
-    that structure (StormerVerlet, SemiImplicitEuler, compositions of them), else the
-    Lagrangian term."""
-    if isinstance(solver.term_structure, tuple):
-        return dvi.separable_terms(lagrangian)
-    return dvi.LagrangianTerm(lagrangian)
-
-
 # Every solver of the package, for tests that must hold for all of them.
 ALL_SOLVERS = [
     ("MidpointVI", dvi.MidpointVI()),

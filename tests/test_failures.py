@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from .helpers import ALL_SOLVERS, Pendulum, terms_for
+from .helpers import ALL_SOLVERS, Pendulum
 
 
 IMPLICIT = [
@@ -20,7 +20,7 @@ IMPLICIT = [
 
 def _solve(lagrangian, solver, y0, t1=1.0, dt=0.1, **kwargs):
     return dfx.diffeqsolve(
-        terms_for(lagrangian, solver), solver, 0.0, t1, dt, y0, **kwargs
+        dvi.terms_for(solver, lagrangian), solver, 0.0, t1, dt, y0, **kwargs
     )
 
 

@@ -22,7 +22,7 @@ def test_momentum_separable_pytree_mass():
     p = dvi.momentum(lagrangian, 0.0, q, v)
     assert jnp.array_equal(p["a"], jnp.array([[2.0], [3.0]]) * v["a"])
     assert jnp.array_equal(p["b"], 5.0 * v["b"])
-    v_back, result = dvi.velocity(lagrangian, 0.0, q, p)
+    v_back, result = dvi.velocity(lagrangian, 0.0, (q, p))
     assert result == dfx.RESULTS.successful
     assert jnp.allclose(v_back["a"], v["a"]) and jnp.allclose(v_back["b"], v["b"])
 
@@ -33,7 +33,7 @@ def test_velocity_quadratic_is_exact_single_solve():
     v = jnp.array([0.7, 0.2])
     p = dvi.momentum(DoublePendulum(), 0.0, q, v)
     assert jnp.allclose(p, _dp_mass_matrix(q) @ v, rtol=1e-14)
-    v_back, result = dvi.velocity(DoublePendulum(), 0.0, q, p)
+    v_back, result = dvi.velocity(DoublePendulum(), 0.0, (q, p))
     assert result == dfx.RESULTS.successful
     assert jnp.allclose(v_back, v, rtol=1e-14)
 
@@ -41,7 +41,7 @@ def test_velocity_quadratic_is_exact_single_solve():
 def test_velocity_general_newton():
     q = jnp.array([0.1, 0.2])
     p = jnp.array([1.5, -0.7])
-    v, result = dvi.velocity(stiffening, 0.0, q, p)
+    v, result = dvi.velocity(stiffening, 0.0, (q, p))
     assert result == dfx.RESULTS.successful
     assert jnp.allclose(v, stiffening_velocity(p), rtol=1e-13, atol=1e-15)
     assert jnp.allclose(dvi.momentum(stiffening, 0.0, q, v), p, rtol=1e-14)
@@ -50,16 +50,18 @@ def test_velocity_general_newton():
 def test_energy_matches_closed_forms():
     q, p = jnp.array(0.4), jnp.array(0.9)
     assert jnp.allclose(
-        dvi.energy(Pendulum(g=2.0), 0.0, q, p), 0.5 * p**2 - 2 * jnp.cos(q)
+        dvi.energy(Pendulum(g=2.0), 0.0, (q, p)), 0.5 * p**2 - 2 * jnp.cos(q)
     )
     q2, p2 = jnp.array([0.1, 0.2]), jnp.array([1.5, -0.7])
     v2 = jnp.sum(stiffening_velocity(p2) ** 2)
     expected = 0.5 * v2 + 0.25 * v2**2 + 0.5 * jnp.sum(q2**2) + 0.1 * q2[0] ** 2 * q2[1]
-    assert jnp.allclose(dvi.energy(stiffening, 0.0, q2, p2), expected, rtol=1e-13)
+    assert jnp.allclose(dvi.energy(stiffening, 0.0, (q2, p2)), expected, rtol=1e-13)
     qd, vd = jnp.array([0.3, -1.1]), jnp.array([0.7, 0.2])
     pd = _dp_mass_matrix(qd) @ vd
     expected = 0.5 * vd @ _dp_mass_matrix(qd) @ vd - 2 * jnp.cos(qd[0]) - jnp.cos(qd[1])
-    assert jnp.allclose(dvi.energy(DoublePendulum(), 0.0, qd, pd), expected, rtol=1e-13)
+    assert jnp.allclose(
+        dvi.energy(DoublePendulum(), 0.0, (qd, pd)), expected, rtol=1e-13
+    )
 
 
 def test_user_equinox_module_as_lagrangian():
@@ -77,10 +79,10 @@ def test_user_equinox_module_as_lagrangian():
 def test_degenerate_lagrangian_is_singular():
     degenerate = lambda t, q, v, args: 0.5 * jnp.sum(v) ** 2 - jnp.sum(q**4)
     q, p = jnp.array([0.1, 0.2]), jnp.array([1.0, 1.0])
-    _, result = dvi.velocity(degenerate, 0.0, q, p)
+    _, result = dvi.velocity(degenerate, 0.0, (q, p))
     assert result != dfx.RESULTS.successful
     zero_mass = dvi.SeparableLagrangian(lambda t, q, args: jnp.sum(q**2), mass=0.0)
-    _, result = dvi.velocity(zero_mass, 0.0, q, p)
+    _, result = dvi.velocity(zero_mass, 0.0, (q, p))
     assert result == dfx.RESULTS.singular
 
 

@@ -12,8 +12,6 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 
-from .helpers import symplecticity_defect
-
 
 def _polynomial(t, q, v, c):
     """A 2-DOF polynomial Lagrangian with coefficients `c` (passed as `args`, so one
@@ -84,7 +82,10 @@ def test_symplectic(name, c, x):
     solver, lagrangian = SOLVERS[name]
     terms = _terms(solver, lagrangian)
     args = _args(c, lagrangian)
-    assert symplecticity_defect(terms, solver, _state(x), args, h=0.1) < 1e-10
+    assert (
+        dvi.diagnostics.symplecticity_defect(solver, terms, _state(x), args, h=0.1)
+        < 1e-10
+    )
 
 
 @eqx.filter_jit

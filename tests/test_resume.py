@@ -5,7 +5,7 @@ import diffrax_vi as dvi
 import jax.numpy as jnp
 import pytest
 
-from .helpers import Duffing, max_abs_diff, terms_for
+from .helpers import Duffing, max_abs_diff
 
 
 SOLVERS = [
@@ -21,7 +21,7 @@ SOLVERS = [
 
 
 def _solve(solver, t0, t1, y0, **kwargs):
-    terms = terms_for(Duffing(), solver)
+    terms = dvi.terms_for(solver, Duffing())
     return dfx.diffeqsolve(terms, solver, t0, t1, 0.05, y0, **kwargs)
 
 

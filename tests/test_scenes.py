@@ -134,7 +134,7 @@ def test_learned_lagrangian():
     before = solve(untrained, dvi.MidpointVI(), y0, t1, 300)
     error = max_abs_diff(jax.tree.map(lambda x: x[-1], learned.ys), exact)
     assert error < 1e-2 < max_abs_diff(jax.tree.map(lambda x: x[-1], before.ys), exact)
-    energy = jax.vmap(lambda q, p: dvi.energy(scene.lagrangian, 0.0, q, p))
+    energy = jax.vmap(lambda q, p: dvi.energy(scene.lagrangian, 0.0, (q, p)))
     long = dfx.diffeqsolve(
         dvi.LagrangianTerm(scene.lagrangian),
         dvi.MidpointVI(),
@@ -146,5 +146,5 @@ def test_learned_lagrangian():
         max_steps=5000,
     )
     e = np.asarray(energy(*long.ys))
-    e0 = float(dvi.energy(scene.lagrangian, 0.0, *y0))
+    e0 = float(dvi.energy(scene.lagrangian, 0.0, y0))
     assert np.max(np.abs(e - e0)) < 1e-3

@@ -104,7 +104,7 @@ def test_lemma_5_midpoint_of_lift_is_lift_of_midpoint(
     lifted = dvi.discrete_lagrangian(
         rule, dvi.TangentLift(lagrangian), 0.1, 0.15, (q0, u0), (q1, u1), None
     )
-    linearized = dvi.tangent_discrete_lagrangian(
+    linearized = dvi.diagnostics.tangent_discrete_lagrangian(
         rule, lagrangian, 0.1, 0.15, (q0, u0), (q1, u1)
     )
     assert jnp.allclose(lifted, linearized, rtol=1e-12, atol=1e-13)
@@ -120,10 +120,10 @@ def test_lemma_4_discrete_lift_is_discrete_derivative(name, lagrangian, n, getke
     qs = _random_triple(getkey(), n) + (0.4 * jax.random.normal(getkey(), _shape(n)),)
     us = [jtu.tree_map(lambda a, b: (b - a) / h, qs[i], qs[i + 1]) for i in range(3)]
     zs = [(qs[i], us[i]) for i in range(3)]
-    lifted = dvi.del_residual(
+    lifted = dvi.diagnostics.del_residual(
         rule, dvi.TangentLift(lagrangian), ts[:3], tuple(zs), None
     )
-    residual = lambda a, b, c: dvi.del_residual(
+    residual = lambda a, b, c: dvi.diagnostics.del_residual(
         rule, lagrangian, ts[:3], (a, b, c), None
     )
     _, derivative = jax.jvp(residual, tuple(qs[:3]), tuple(us))
@@ -132,7 +132,9 @@ def test_lemma_4_discrete_lift_is_discrete_derivative(name, lagrangian, n, getke
     assert jnp.allclose(q_part, derivative, rtol=1e-11, atol=1e-11)
     if name == "oscillator":
         # For a linear DEL the JVP is exactly the difference quotient of F.
-        later = dvi.del_residual(rule, lagrangian, ts[1:], tuple(qs[1:]), None)
+        later = dvi.diagnostics.del_residual(
+            rule, lagrangian, ts[1:], tuple(qs[1:]), None
+        )
         quotient = (later - residual(*qs[:3])) / h
         assert jnp.allclose(q_part, quotient, rtol=1e-10, atol=1e-10)
 
@@ -195,7 +197,7 @@ def _triple_map(lagrangian, h):
         p2 = jax.grad(
             lambda b: dvi.discrete_lagrangian(rule, lagrangian, h, 2 * h, q1, b, None)
         )(q2)
-        state = ((q1, q0), (jnp.asarray(h), jnp.asarray(h)), jnp.zeros_like(q0))
+        state = solver.init_from_history((q1, q0), (h, h), (q2, p2))
         (q3, _), *_ = solver.step(term, 2 * h, 3 * h, (q2, p2), None, state, False)
         return q1, q2, q3
 
@@ -208,7 +210,9 @@ def test_theorem_2_presymplectic_on_S(name, lagrangian, n, getkey):
     q0, q1, _ = _random_triple(getkey(), n)
     q2 = _on_S(lagrangian, q0, q1, h)
     rule = dvi.MidpointRule()
-    residual = dvi.del_residual(rule, lagrangian, (0.0, h, 2 * h), (q0, q1, q2), None)
+    residual = dvi.diagnostics.del_residual(
+        rule, lagrangian, (0.0, h, 2 * h), (q0, q1, q2), None
+    )
     assert float(jnp.max(jnp.abs(residual))) < 1e-12
 
     # Tangent vectors of S: S is the graph of (q0, q1) -> q2 (Proposition 4).
@@ -226,7 +230,9 @@ def test_theorem_2_presymplectic_on_S(name, lagrangian, n, getkey):
     psi = _triple_map(lagrangian, h)
     psi_jvp = jax.jit(lambda v: jax.jvp(psi, ((q0, q1, q2),), (v,)))
     ts = (0.0, h, 2 * h)
-    omega = lambda x, a, b, t: dvi.presymplectic_form(rule, lagrangian, t, x, a, b)
+    omega = lambda x, a, b, t: dvi.diagnostics.presymplectic_form(
+        rule, lagrangian, t, x, a, b
+    )
     image, dxi = psi_jvp(xi)
     _, deta = psi_jvp(eta)
     before = omega((q0, q1, q2), xi, eta, ts)
@@ -261,7 +267,7 @@ def test_linearized_starts_on_S_and_its_residual_drifts(velocity):
             max_steps=1000,
         )
         ts, qs = sol.ts[:1001], sol.ys[0][:1001]
-        res = jnp.abs(dvi.del_residuals(Duffing(), ts, qs))
+        res = jnp.abs(dvi.diagnostics.del_residuals(Duffing(), ts, qs))
         residual_max[type(solver).__name__] = (float(res[0]), float(res.max()))
     # Round-off of differencing positions: about eps |q| / h.
     assert residual_max["MidpointVI"][1] < 1e-13
@@ -278,15 +284,17 @@ def test_linearized_history_lies_on_S(velocity, name, lagrangian, n, getkey):
     q0, v0, _ = _random_triple(getkey(), n)
     y0 = _state(lagrangian, q0, v0)
     h = 0.05
-    qs, _, _ = dvi.LinearizedVI(velocity=velocity).init(
-        dvi.LagrangianTerm(lagrangian), 0.0, h, y0, None
+    qs = (
+        dvi.LinearizedVI(velocity=velocity)
+        .init(dvi.LagrangianTerm(lagrangian), 0.0, h, y0, None)
+        .method.positions
     )
     points = (q0,) + qs
     rule = dvi.MidpointRule()
     for k in range(len(qs) - 1):
         triple = (points[k + 2], points[k + 1], points[k])
         ts = (-(k + 2) * h, -(k + 1) * h, -k * h)
-        residual = dvi.del_residual(rule, lagrangian, ts, triple, None)
+        residual = dvi.diagnostics.del_residual(rule, lagrangian, ts, triple, None)
         assert float(jnp.max(jnp.abs(residual))) < 1e-12
     # And p0 is the discrete Legendre transform D2 Ld(q_{-1}, q0).
     p0 = jax.grad(
@@ -309,7 +317,7 @@ def test_linearized_exact_for_linear_del_invariant_residual(velocity):
         saveat=dfx.SaveAt(t0=True, steps=True),
         max_steps=1000,
     )
-    res = dvi.del_residuals(osc, sol.ts[:1001], sol.ys[0][:1001])
+    res = dvi.diagnostics.del_residuals(osc, sol.ts[:1001], sol.ys[0][:1001])
     assert float(jnp.max(jnp.abs(res))) < 1e-12
 
 
@@ -378,12 +386,12 @@ def test_linearized_with_trapezoidal_discrete_lagrangian():
     osc = dvi.SeparableLagrangian(lambda t, q, a: 0.5 * q**2)
     term = dvi.LagrangianTerm(osc)
     y0 = (jnp.array(1.0), jnp.array(0.0))
-    qs, _, _ = solver.init(term, 0.0, 0.05, y0, None)
-    residual = dvi.del_residual(
+    qs = solver.init(term, 0.0, 0.05, y0, None).method.positions
+    residual = dvi.diagnostics.del_residual(
         rule, osc, (-0.1, -0.05, 0.0), (qs[1], qs[0], y0[0]), None
     )
     assert abs(float(residual)) < 1e-13
-    midpoint_residual = dvi.del_residual(
+    midpoint_residual = dvi.diagnostics.del_residual(
         dvi.MidpointRule(), osc, (-0.1, -0.05, 0.0), (qs[1], qs[0], y0[0]), None
     )
     assert abs(float(midpoint_residual)) > 1e-6  # a different S

@@ -128,7 +128,9 @@ def _sorted(z):
 def test_step_matrix_roots_match_the_characteristic_polynomial(name):
     solver, roots, _ = CASES[name]
     # One compilation for every step size, not an eager trace per step.
-    matrices = jax.jit(jax.vmap(lambda x: dvi.oscillator_step_matrix(solver, x)))
+    matrices = jax.jit(
+        jax.vmap(lambda x: dvi.diagnostics.oscillator_step_matrix(solver, x))
+    )
     for x, m in zip(XS, np.asarray(matrices(jnp.asarray(XS)))):
         eig = np.linalg.eigvals(m)
         nonzero = eig[np.abs(eig) > 1e-9]
@@ -148,7 +150,7 @@ def test_stability_limit(name):
     if limit is None:
         limit = _closed_form_limit(roots)
         assert 1.5 < limit < 1.6  # Yoshida's is famously short: 1.5734
-    measured = dvi.stability_limit(solver)
+    measured = dvi.diagnostics.stability_limit(solver)
     if math.isinf(limit):
         assert math.isinf(measured)
     else:
@@ -382,7 +384,7 @@ def test_double_pendulum_diverges_but_keeps_its_energy():
     scene = double_pendulum()
     members = scene.perturbed(jax.random.key(0), 4, spread=1e-9)
     term = dvi.LagrangianTerm(scene.lagrangian)
-    energy = jax.vmap(lambda q, p: dvi.energy(scene.lagrangian, 0.0, q, p))
+    energy = jax.vmap(lambda q, p: dvi.energy(scene.lagrangian, 0.0, (q, p)))
 
     @jax.vmap
     def solve(y0):

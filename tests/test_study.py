@@ -15,9 +15,9 @@ import matplotlib.image
 import numpy as np
 import pytest
 from diffrax_vi import scenes
+from diffrax_vi.cli import main
 from diffrax_vi.scenes import kepler
 from diffrax_vi.study import drift, Method, work_precision
-from diffrax_vi.study._cli import main
 
 
 ARGS = ["--periods", "2", "--steps-per-period", "50", "--save", "10"]

@@ -1,14 +1,8 @@
 import importlib.metadata
 
-from ._diagnostics import (
-    del_residuals as del_residuals,
-    presymplectic_form as presymplectic_form,
-    tangent_discrete_lagrangian as tangent_discrete_lagrangian,
-    tangent_symplectic_form as tangent_symplectic_form,
-)
+from . import diagnostics as diagnostics, scenes as scenes, study as study
 from ._discrete import (
     AbstractDiscreteLagrangian as AbstractDiscreteLagrangian,
-    del_residual as del_residual,
     discrete_lagrangian as discrete_lagrangian,
     MidpointRule as MidpointRule,
     TrapezoidalRule as TrapezoidalRule,
@@ -25,25 +19,27 @@ from ._lagrangian import (
     velocity as velocity,
 )
 from ._solver import (
+    AbstractImplicitVI as AbstractImplicitVI,
     AbstractSymmetricSolver as AbstractSymmetricSolver,
     AbstractSymplecticSolver as AbstractSymplecticSolver,
     AbstractVariationalSolver as AbstractVariationalSolver,
     AbstractVPRK as AbstractVPRK,
     Composition as Composition,
+    CompositionScheme as CompositionScheme,
     GaussVPRK as GaussVPRK,
     LinearizedVI as LinearizedVI,
     LobattoVPRK as LobattoVPRK,
     MidpointVI as MidpointVI,
     StormerVerlet as StormerVerlet,
     TrapezoidalVI as TrapezoidalVI,
+    VPRK as VPRK,
     VPRKTableau as VPRKTableau,
 )
-from ._stability import (
-    oscillator_step_matrix as oscillator_step_matrix,
-    spectral_radius as spectral_radius,
-    stability_limit as stability_limit,
+from ._term import (
+    LagrangianTerm as LagrangianTerm,
+    separable_terms as separable_terms,
+    terms_for as terms_for,
 )
-from ._term import LagrangianTerm as LagrangianTerm, separable_terms as separable_terms
 
 
 __version__ = importlib.metadata.version("diffrax_vi")

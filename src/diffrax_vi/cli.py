@@ -1,4 +1,6 @@
-"""The `diffrax-vi` command line."""
+"""The `diffrax-vi` command line: `diffrax-vi drift`, `diffrax-vi work-precision`,
+`diffrax-vi seed`; also `python -m diffrax_vi ...`. `main(argv)` runs it from Python
+and returns the exit code."""
 
 import argparse
 import sys
@@ -11,7 +13,7 @@ DTYPES = ("float64", "float32")
 
 
 def _scene(name: str):
-    from ..scenes import SCENES
+    from .scenes import SCENES
 
     if name not in SCENES:
         raise SystemExit(
@@ -21,7 +23,7 @@ def _scene(name: str):
 
 
 def _methods(solvers: str, rtol: float):
-    from ._methods import as_method
+    from .study import as_method
 
     names = [s.strip() for s in solvers.split(",") if s.strip()]
     if not names:
@@ -47,7 +49,7 @@ def _report(study, out: str) -> int:
 
 
 def _drift(args: argparse.Namespace) -> int:
-    from ._drift import drift
+    from .study import drift
 
     scene = _scene(args.scene)
     methods = _methods(args.solvers, args.rtol)
@@ -76,7 +78,7 @@ def _drift(args: argparse.Namespace) -> int:
 
 
 def _work_precision(args: argparse.Namespace) -> int:
-    from ._work_precision import work_precision
+    from .study import work_precision
 
     scene = _scene(args.scene)
     methods = _methods(args.solvers, 1e-8)
@@ -93,9 +95,9 @@ def _work_precision(args: argparse.Namespace) -> int:
 
 
 def _seed(args: argparse.Namespace) -> int:
-    from . import seed
+    from .thesis import chapter5
 
-    print(seed(args.out))
+    print(chapter5(args.out))
     return 0
 
 
@@ -197,6 +199,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line on `argv` (default: `sys.argv[1:]`); returns the exit
+    code."""
     parser = _parser()
     args = parser.parse_args(argv)
     if args.command is None:

@@ -1,4 +1,5 @@
-"""Diagnostics along solutions: DEL residuals, and the seed's 2-forms (4.68)."""
+"""Diagnostics along solutions: DEL residuals, and the 2-forms of Hirani (2000),
+eq. (4.68)."""
 
 from collections.abc import Callable
 
@@ -7,14 +8,14 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 from jaxtyping import Array, ArrayLike, Float, PyTree
 
-from ._custom_types import Args, Q, RealScalarLike, Scalar
-from ._discrete import (
+from .._custom_types import Args, Q, RealScalarLike, Scalar
+from .._discrete import (
     AbstractDiscreteLagrangian,
     del_residual,
     discrete_lagrangian,
     MidpointRule,
 )
-from ._lagrangian import as_lagrangian
+from .._lagrangian import as_lagrangian
 
 
 def del_residuals(
@@ -27,7 +28,7 @@ def del_residuals(
     r"""The discrete Euler–Lagrange residual
     $F(q_{k-1}, q_k, q_{k+1}) = D_2 L_d(q_{k-1}, q_k) + D_1 L_d(q_k, q_{k+1})$ at every
     interior point of a discrete trajectory: how far its triples lie from the manifold
-    $S = \{F = 0\}$ (the seed's (4.72)).
+    $S = \{F = 0\}$ (Hirani (2000), eq. (4.72)).
 
     Zero to round-off along a [`diffrax_vi.MidpointVI`][] trajectory; for
     [`diffrax_vi.LinearizedVI`][] it measures the drift off $S$.
@@ -65,7 +66,7 @@ def tangent_discrete_lagrangian(
     z1: tuple[Q, Q],
     args: Args = None,
 ) -> Scalar:
-    r"""The seed's discrete linearization (4.34),
+    r"""The discrete linearization of Hirani (2000), eq. (4.34),
     $L_d^{(2)}((q_0, u_0), (q_1, u_1)) = dL_d(q_0, q_1)\cdot(u_0, u_1)$, with
     $z_i = (q_i, u_i)$."""
     lagrangian = as_lagrangian(lagrangian)
@@ -120,8 +121,8 @@ def presymplectic_form(
     eta: tuple[Q, Q, Q],
     args: Args = None,
 ) -> Scalar:
-    r"""The 2-form $\omega = i^*\Omega$ on triples $(q_0, q_1, q_2)$ (the seed's
-    Section 4.7.2), pulled back from (4.68) by
+    r"""The 2-form $\omega = i^*\Omega$ on triples $(q_0, q_1, q_2)$ (Hirani (2000),
+    §4.7.2), pulled back from eq. (4.68) by
     $i(q_0, q_1, q_2) = ((q_0, u_0), (q_1, u_1))$ with forward velocities
     $u_j = (q_{j+1} - q_j)/h_j$. [`diffrax_vi.LinearizedVI`][] preserves it on
     tangent vectors of $S$ (Theorem 2)."""

@@ -8,17 +8,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._lagrangian import SeparableLagrangian
-from ._term import LagrangianTerm, separable_terms
+from .._lagrangian import SeparableLagrangian
+from .._term import terms_for
 
 
 _OSCILLATOR = SeparableLagrangian(lambda t, q, args: 0.5 * q**2)
-
-
-def _terms(solver: dfx.AbstractSolver):
-    if isinstance(solver.term_structure, tuple):
-        return separable_terms(_OSCILLATOR)
-    return LagrangianTerm(_OSCILLATOR)
 
 
 def oscillator_step_matrix(
@@ -38,7 +32,7 @@ def oscillator_step_matrix(
     The oscillator is linear, so the matrix is exact (by `jax.jacrev` through the
     step, and implicit differentiation through any Newton solve).
     """
-    terms = _terms(solver)
+    terms = terms_for(solver, _OSCILLATOR)
     h = jnp.asarray(omega_h, dtype=float)
     y0 = (jnp.ones((), h.dtype), jnp.zeros((), h.dtype))
     state0 = solver.init(terms, 0.0, h, y0, None)
@@ -68,7 +62,7 @@ def spectral_radius(
     solver: dfx.AbstractSolver, omega_h: Float[ArrayLike, " n"]
 ) -> np.ndarray:
     """The largest eigenvalue modulus of
-    [`diffrax_vi.oscillator_step_matrix`][] at each step in `omega_h`."""
+    [`diffrax_vi.diagnostics.oscillator_step_matrix`][] at each step in `omega_h`."""
     return _radius_fn(solver)(np.atleast_1d(omega_h))
 
 

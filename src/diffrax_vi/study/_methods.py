@@ -11,7 +11,7 @@ from .._solver import (
     StormerVerlet,
     TrapezoidalVI,
 )
-from .._term import LagrangianTerm, separable_terms
+from .._term import terms_for
 from ..scenes import Scene
 
 
@@ -57,12 +57,9 @@ class Method:
         return dfx.PIDController(rtol=self.rtol, atol=self.rtol)
 
     def terms(self, scene: Scene):
-        """The scene's terms as this solver takes them: the partitioned pair for
-        StormerVerlet, SemiImplicitEuler and their compositions, else the Lagrangian
-        term."""
-        if isinstance(self.solver.term_structure, tuple):
-            return separable_terms(scene.lagrangian)
-        return LagrangianTerm(scene.lagrangian)
+        """The scene's terms as this solver takes them
+        ([`diffrax_vi.terms_for`][])."""
+        return terms_for(self.solver, scene.lagrangian)
 
 
 def make_solver(name: str) -> dfx.AbstractSolver:

@@ -1,11 +1,10 @@
+"""Figures of the studies, drawn on `matplotlib.figure.Figure` directly: no pyplot,
+so the user's backend is never touched."""
+
 import pathlib
 
-import matplotlib
-
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 
 
 # Errors are plotted on log axes; an exact zero (energy of a quadratic Lagrangian
@@ -15,7 +14,8 @@ FLOOR = 1e-17
 
 def plot_drift(study, invariant: str, path: pathlib.Path) -> pathlib.Path:
     """Log–log plot of one invariant's error against time, a line per solver."""
-    fig, ax = plt.subplots(figsize=(7, 4.5), layout="constrained")
+    fig = Figure(figsize=(7, 4.5), layout="constrained")
+    ax = fig.subplots()
     for run in study.runs:
         ts, err = run.ts[1:], run.errors[invariant][1:]
         ax.loglog(ts, err + FLOOR, label=f"{run.solver} ({run.wall_time:.2f} s)")
@@ -29,13 +29,13 @@ def plot_drift(study, invariant: str, path: pathlib.Path) -> pathlib.Path:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend()
     fig.savefig(path, dpi=120)
-    plt.close(fig)
     return path
 
 
 def plot_work_precision(study, path: pathlib.Path) -> pathlib.Path:
     """Energy error and global error against wall time, a line per solver."""
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), layout="constrained")
+    fig = Figure(figsize=(12, 4.5), layout="constrained")
+    axes = fig.subplots(1, 2)
     for key, ax in zip(("max_energy_error", "global_error"), axes):
         for solver in dict.fromkeys(r["solver"] for r in study.records):
             points = sorted(
@@ -52,5 +52,4 @@ def plot_work_precision(study, path: pathlib.Path) -> pathlib.Path:
     axes[0].legend(fontsize=7)
     fig.suptitle(f"{study.scene}: {study.periods:g} periods, {study.dtype}")
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
