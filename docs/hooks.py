@@ -1,7 +1,6 @@
 """mkdocs hook: generate the table of methods from the library itself."""
 
 import diffrax_vi as dvi
-from diffrax_vi._solver.composition import composition_coefficients
 
 
 def _row(name, solver, explicit, forces):
@@ -46,15 +45,24 @@ def methods_table() -> str:
             )
         )
     for scheme in ("yoshida4", "suzuki4", "kahan_li6", "kahan_li8"):
-        m = len(composition_coefficients(scheme)[0])
+        solver = dvi.Composition(sv, scheme)
         rows.append(
             _row(
                 f'Composition(StormerVerlet(), "{scheme}")',
-                dvi.Composition(sv, scheme),
+                solver,
                 "explicit",
-                str(m),
+                str(len(solver.scheme.coefficients)),
             )
         )
+    nested = dvi.Composition(dvi.Composition(sv, "triple_jump"), "triple_jump")
+    rows.append(
+        _row(
+            'Composition(Composition(StormerVerlet(), "triple_jump"), "triple_jump")',
+            nested,
+            "explicit",
+            str(len(nested.scheme.coefficients) * len(nested.base.scheme.coefficients)),
+        )
+    )
     rows.append(
         _row(
             "LinearizedVI(velocity=...)",
