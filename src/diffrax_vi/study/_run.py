@@ -72,9 +72,9 @@ def shard_ensemble(y0s: PyTree[Array], members: int) -> PyTree[Array]:
     return jax.device_put(y0s, NamedSharding(mesh, PartitionSpec("ensemble")))
 
 
-# An adaptive method may take at most this many steps between two save times (as
-# diffrax's default `max_steps`), so that a step size collapsing to nothing fails the
-# run rather than spinning.
+# An adaptive method may take on average at most this many steps per save interval
+# (as diffrax's default `max_steps`), so that a step size collapsing to nothing fails
+# the run rather than spinning.
 MAX_ADAPTIVE_STEPS_PER_SAVE = 4096
 
 
@@ -93,107 +93,69 @@ def run(
     """Solve `scene` from `y0` with `method` to `t1`, recording the largest error of
     each conserved quantity over each of `n_save` equal intervals, and the final
     state. Fixed steps take exactly `n_steps` (which `n_save` must divide); adaptive
-    ones choose their own (diffrax picks the first step of each interval, then the
-    controller, whose state carries over) and take at most
-    `MAX_ADAPTIVE_STEPS_PER_SAVE` steps per interval. With `ensemble=True`, `y0` has a
-    leading axis of members and the solve is vmapped over it (and runs on every
+    ones take the steps they take in a plain `diffeqsolve` with the same controller
+    (at most `MAX_ADAPTIVE_STEPS_PER_SAVE * n_save`). With `ensemble=True`, `y0` has
+    a leading axis of members and the solve is vmapped over it (and runs on every
     device `y0` is sharded over). Wall time is of a second, compiled, call.
 
-    The errors are taken at every step, not sampled: a sample every k-th step
-    aliases with the motion (one save per period sees one phase of the orbit, and
-    misses the pendulum's peak energy error by a factor of 10^6). Each interval is
-    one `diffeqsolve` inside a `lax.scan`, resumed from the last one's solver and
-    controller state, with a solver wrapped in `TrackWorstError`, which keeps the
-    running maximum in its solver state: memory is O(`n_save`), not O(steps)."""
+    The run is one `diffeqsolve`, as a user would write it: splitting it into one
+    solve per interval made an adaptive controller end every interval on its boundary
+    and pick its first step afresh (Dopri8 at rtol 1e-6 on Kepler over 100 periods
+    took 3900 steps in 1000 intervals against 1535 alone, and showed a 4x smaller
+    energy error). The errors are taken at every step, not sampled (a sample every
+    k-th step aliases with the motion), by wrapping the solver in `TrackWorstError`,
+    which keeps each interval's maximum in its solver state: memory is O(`n_save`),
+    not O(steps)."""
     conserved = scene.conserved()
     terms = method.terms(scene)
-    solver = method.solver
-    controller = method.controller()
     fixed = method.rtol is None
-    per_save = n_steps // n_save
-    max_steps = per_save if fixed else MAX_ADAPTIVE_STEPS_PER_SAVE
     ts = jnp.linspace(0, t1, n_save + 1, dtype=dtype)
     h = jnp.asarray(t1 / n_steps, dtype)
-    # Driven once per interval, so one bar for the whole run.
-    meter = (
-        dfx.TqdmProgressMeter(refresh_steps=1) if progress else dfx.NoProgressMeter()
-    )
+    meter = dfx.TqdmProgressMeter() if progress else dfx.NoProgressMeter()
 
     def solve(y0):
-        tracked = TrackWorstError(
-            solver, conserved, {k: f(ts[0], y0, None) for k, f in conserved.items()}
+        solver = TrackWorstError(
+            method.solver,
+            conserved,
+            {k: f(ts[0], y0, None) for k, f in conserved.items()},
+            ts[1:],
+            steps_per_interval=n_steps // n_save if fixed else None,
         )
-        saveat = dfx.SaveAt(t1=True, solver_state=True, controller_state=True)
-        solver_state = solver.init(terms, ts[0], ts[0] + h, y0, None)
-        if fixed:
-            controller_state = None
-        else:
-            error_order = solver.error_order(terms)
-            _, controller_state = controller.init(
-                terms, ts[0], ts[1], y0, h, None, solver.func, error_order
-            )
-
-        def interval(carry, t_span):
-            y, solver_state, controller_state, result, steps, meter_state = carry
-            sol = dfx.diffeqsolve(
-                terms,
-                tracked,
-                t_span[0],
-                t_span[1],
-                # diffrax places fixed steps at t0 + (t1 - t0) k / n, ending exactly
-                # on the save time; a sum of steps would leave a last step of a few
-                # ulps (and StepTo indexing a time grid costs ~1 us per step on CPU).
-                (t_span[1] - t_span[0]) / per_save if fixed else None,
-                y,
-                saveat=saveat,
-                stepsize_controller=controller,
-                solver_state=(solver_state, tracked.reset()),
-                controller_state=controller_state,
-                max_steps=max_steps,
-                throw=False,
-            )
-            solver_state, errors = sol.solver_state
-            final = jax.tree.map(lambda x: x[-1], sol.ys)
-            n = sol.stats["num_steps"]
-            ok = result == dfx.RESULTS.successful
-            # diffrax's Runge-Kutta solvers do not check fixed steps for NaN: a
-            # blow-up would otherwise be tabled as a success.
-            new = dfx.RESULTS.where(
-                (sol.result == dfx.RESULTS.successful) & ~all_finite((errors, final)),
-                dfx.RESULTS.nonfinite,
-                sol.result,
-            )
-            result = dfx.RESULTS.where(ok, new, result)
-            errors = jax.tree.map(lambda e: jnp.where(ok, e, jnp.nan), errors)
-            steps = steps + jnp.where(ok, n, 0)
-            meter_state = meter.step(
-                meter_state, (t_span[1] - ts[0]) / (ts[-1] - ts[0])
-            )
-            carry = (
-                final,
-                solver_state,
-                None if fixed else sol.controller_state,
-                result,
-                steps,
-                meter_state,
-            )
-            return carry, errors
-
-        carry = (
+        sol = dfx.diffeqsolve(
+            terms,
+            solver,
+            ts[0],
+            ts[-1],
+            # An adaptive controller picks its own first step, as it does alone.
+            h if fixed else None,
             y0,
-            solver_state,
-            controller_state,
-            dfx.RESULTS.successful,
-            jnp.zeros((), int),
-            meter.init(),
+            saveat=dfx.SaveAt(t1=True, solver_state=True),
+            stepsize_controller=method.controller(),
+            # A bounded loop is checkpointed for reverse-mode differentiation, which
+            # copied the per-interval maxima at every step: fixed steps need no bound.
+            max_steps=None if fixed else MAX_ADAPTIVE_STEPS_PER_SAVE * n_save,
+            progress_meter=meter,
+            throw=False,
         )
-        spans = jnp.stack([ts[:-1], ts[1:]], axis=1)
-        (final, *_, result, steps, meter_state), errors = jax.lax.scan(
-            interval, carry, spans
+        _, worst = sol.solver_state
+        final = jax.tree.map(lambda x: x[-1], sol.ys)
+        # diffrax's Runge-Kutta solvers do not check fixed steps for NaN: a blow-up
+        # would otherwise be tabled as a success.
+        result = dfx.RESULTS.where(
+            (sol.result == dfx.RESULTS.successful) & ~all_finite((worst.errors, final)),
+            dfx.RESULTS.nonfinite,
+            sol.result,
         )
-        meter.close(meter_state)
-        zero = jax.tree.map(lambda e: jnp.zeros((1,), e.dtype), errors)
-        errors = jax.tree.map(lambda z, e: jnp.concatenate([z, e]), zero, errors)
+        # Intervals the solve did not reach, after a failure, have no errors.
+        reached = ts[1:] <= sol.ts[-1]
+        ok = result == dfx.RESULTS.successful
+        kept = jnp.where((ok | reached)[:, None], worst.errors, jnp.nan)
+        kept = jnp.concatenate([jnp.zeros_like(kept[:1]), kept])
+        errors = {k: kept[:, i] for i, k in enumerate(solver.names)}
+        # Steps counted by the wrapper plus the rejected ones: returning diffrax's
+        # own step counters made XLA copy the per-interval maxima at every step
+        # (1 us per step with 1000 intervals).
+        steps = worst.steps + sol.stats["num_rejected_steps"]
         return errors, final, steps, result
 
     solve = eqx.filter_jit(jax.vmap(solve) if ensemble else solve)
