@@ -134,20 +134,18 @@ def test_adaptive_study_takes_the_steps_of_a_plain_solve(n_save):
         assert run.errors["energy"][i + 1] == pytest.approx(expected, rel=1e-10)
 
 
+DEFAULT = ["MidpointVI", "StormerVerlet", "KahanLi8", "Tsit5", "Dopri8", "Dopri8+PID"]
+
+
 def test_cli_end_to_end(tmp_path, capsys):
     out = tmp_path / "results"
     assert main(["drift", *ARGS, "--out", str(out)]) == 0
     printed = capsys.readouterr().out
-    for name in ("MidpointVI", "StormerVerlet", "Tsit5", "Dopri8"):
+    for name in DEFAULT:
         assert name in printed
     with open(out / "drift.csv") as f:
         rows = list(csv.DictReader(f))
-    assert [r["solver"] for r in rows] == [
-        "MidpointVI",
-        "StormerVerlet",
-        "Tsit5",
-        "Dopri8",
-    ]
+    assert [r["solver"] for r in rows] == DEFAULT
     api = drift(
         kepler(), ["MidpointVI", "Tsit5"], periods=2, steps_per_period=50, n_save=10
     )
@@ -159,32 +157,105 @@ def test_cli_end_to_end(tmp_path, capsys):
         assert int(by_name[run.solver]["steps"]) == 100
     data = json.loads((out / "drift.json").read_text())
     assert data["scene"] == "kepler" and len(data["series"]["Tsit5"]["energy"]) == 11
+    # The step actually taken: two periods of 2 pi in 100 steps.
+    assert data["step"] == pytest.approx(4 * np.pi / 100, rel=1e-14)
+    assert data["fixed_steps"] == 100
     for name in ("energy", "angular_momentum"):
         png = out / f"drift_{name}.png"
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert matplotlib.image.imread(png).shape[0] > 100
+    # The verdict is the table's numbers, in a line.
+    verdict = [line for line in printed.splitlines() if line.startswith("Verdict")]
+    best = min(rows, key=lambda r: float(r["max_energy_error"]))
+    assert (
+        len(verdict) == 1 and f"lowest energy error: {best['solver']} (" in (verdict[0])
+    )
+    assert "non-symplectic energy errors grow" in verdict[0]
 
 
-def test_cli_errors(capsys):
-    with pytest.raises(SystemExit, match="Unknown solver .RK99."):
-        main(["drift", "--solvers", "MidpointVI,RK99"])
-    with pytest.raises(SystemExit, match="unknown scene"):
-        main(["drift", "--scene", "blackhole"])
-    with pytest.raises(SystemExit, match="no error estimate"):
-        main(["drift", "--solvers", "MidpointVI+PID"])
-    with pytest.raises(SystemExit, match="Partitioned terms exist only"):
-        main(["drift", "--scene", "double_pendulum", "--solvers", "StormerVerlet"])
-    with pytest.raises(SystemExit, match="numbers"):
-        main(["work-precision", "--rtols", "tight"])
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["drift", "--rtol", "-1"], "--rtol: a tolerance must be finite, > 0 and < 1"),
+        (["drift", "--rtol", "2"], "< 1"),
+        (["drift", "--periods", "0"], "--periods: a horizon must be finite, > 0"),
+        (["drift", "--periods", "inf"], "finite"),
+        (["drift", "--periods", "nan"], "finite"),
+        (["drift", "--periods", "-3"], "> 0"),
+        (["drift", "--steps-per-period", "2.5"], "must be an integer"),
+        (["drift", "--ensemble", "0"], "--ensemble: a count"),
+        (["drift", "--ensemble", "-1"], "--ensemble: a count"),
+        (["drift", "--ensemble", "10000000000000"], "use at most"),
+        (["drift", "--spread", "nan"], "--spread"),
+        (["drift", "--save", "7"], "n_save=7 must divide the number of steps 200000"),
+        (["drift", "--periods", "0.15", "--steps-per-period", "10"], "whole number"),
+        (["drift", "--solvers", ","], "--solvers names no solver"),
+        (["drift", "--solvers", "MidpointVI,RK99"], "Unknown solver 'RK99'"),
+        (["drift", "--scene", "blackhole"], "unknown scene"),
+        (["drift", "--solvers", "MidpointVI+PID"], "no error estimate"),
+        (
+            ["drift", "--scene", "double_pendulum", "--solvers", "StormerVerlet"],
+            "Partitioned terms exist only",
+        ),
+        (["work-precision", "--rtols", "tight"], "--rtols: a tolerance must be a"),
+        (["work-precision", "--rtols", ""], "names no value"),
+        (["work-precision", "--steps-per-period", "10,-5"], "a count must be"),
+        (["work-precision", "--periods", "0.5", "--steps-per-period", "5"], "whole"),
+    ],
+)
+def test_cli_rejects_bad_options_before_any_work(argv, message, capsys, tmp_path):
+    """One line on stderr, exit code 2, and nothing written."""
+    out = tmp_path / "never"
+    assert main([*argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err, err
+    assert not out.exists()
+
+
+def test_cli_never_overwrites_results(tmp_path, capsys, monkeypatch):
+    small = ["--periods", "1", "--steps-per-period", "20", "--save", "2"]
+    out = tmp_path / "mine"
+    assert main(["drift", *small, "--solvers", "StormerVerlet", "--out", str(out)]) == 0
+    assert (out / "drift_angular_momentum.png").exists()
+    before = (out / "drift.csv").read_text()
+    # The same folder again: refused, and the first results are untouched.
+    argv = ["drift", *small, "--scene", "pendulum", "--solvers", "StormerVerlet"]
+    assert main([*argv, "--out", str(out)]) == 2
+    assert "--force" in capsys.readouterr().err
+    assert (out / "drift.csv").read_text() == before
+    # With --force the new results replace the old, with no stale figure (the
+    # pendulum has no angular momentum), and another file there is kept.
+    (out / "notes.txt").write_text("mine")
+    assert main([*argv, "--out", str(out), "--force"]) == 0
+    assert not (out / "drift_angular_momentum.png").exists()
+    assert json.loads((out / "drift.json").read_text())["scene"] == "pendulum"
+    assert (out / "notes.txt").read_text() == "mine"
+    # A file, or a place that cannot be written, is refused before any work.
+    assert main([*argv, "--out", str(out / "notes.txt")]) == 2
+    assert "is a file" in capsys.readouterr().err
+    # Without --out each run writes a new folder.
+    monkeypatch.chdir(tmp_path)
+    assert main([*argv]) == 0
+    assert main([*argv]) == 0
+    runs = sorted(p.name for p in (tmp_path / "diffrax-vi-results").iterdir())
+    assert runs == ["drift-pendulum-1", "drift-pendulum-2"]
+
+
+def test_cli_help_and_study_errors(capsys):
     with pytest.raises(ValueError, match="must divide"):
         drift(kepler(), ["MidpointVI"], periods=1, steps_per_period=10, n_save=3)
+    with pytest.raises(ValueError, match="solvers is empty"):
+        drift(kepler(), [])
+    with pytest.raises(ValueError, match="whole number"):
+        drift(kepler(), ["MidpointVI"], periods=0.15, steps_per_period=10)
+    with pytest.raises(ValueError, match="rtol"):
+        drift(kepler(), ["Tsit5+PID"], rtol=-1.0)
     for command, option in [
         ("drift", "--ensemble"),
         ("work-precision", "--rtols"),
         ("seed", "--out"),
     ]:
-        with pytest.raises(SystemExit):
-            main([command, "--help"])
+        assert main([command, "--help"]) == 0
         assert option in capsys.readouterr().out
     assert main([]) == 2
 

@@ -20,13 +20,14 @@ import abc
 import diffrax as dfx
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import jax.tree_util as jtu
 import optimistix as optx
 
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
 from ._lagrangian import AbstractLagrangian, lagrangian_value
-from ._misc import momentum_scale, tree_axpy
-from ._nonlinear import solve_implicit
+from ._misc import tree_axpy
+from ._nonlinear import solve
 
 
 class AbstractDiscreteLagrangian(eqx.Module):
@@ -105,11 +106,25 @@ def del_residual(
 ) -> P:
     r"""The discrete Euler–Lagrange residual (Hirani (2000), eq. (3.1))
     $F(q_{k-1}, q_k, q_{k+1}) = D_2 L_d(q_{k-1}, q_k) + D_1 L_d(q_k, q_{k+1})$."""
+    a, b = del_momenta(rule, lagrangian, ts, qs, args)
+    return jtu.tree_map(lambda x, y: x + y, a, b)
+
+
+def del_momenta(
+    rule: AbstractDiscreteLagrangian,
+    lagrangian: AbstractLagrangian,
+    ts: tuple[RealScalarLike, RealScalarLike, RealScalarLike],
+    qs: tuple[Q, Q, Q],
+    args: Args,
+) -> tuple[P, P]:
+    r"""The two momenta the discrete Euler–Lagrange equations balance at $q_k$,
+    $(D_2 L_d(q_{k-1}, q_k), D_1 L_d(q_k, q_{k+1}))$: $p_k$ from the step before, and
+    $-p_k$ from the step after."""
     t_prev, t, t_next = ts
     q_prev, q, q_next = qs
     a = d2_ld(rule, lagrangian, t_prev, t, q_prev, q, args)
     b = d1_ld(rule, lagrangian, t, t_next, q, q_next, args)
-    return jtu.tree_map(lambda x, y: x + y, a, b)
+    return a, b
 
 
 def average_grads(rule, lagrangian, t0, h, q0, v, args) -> tuple[P, P]:
@@ -117,16 +132,22 @@ def average_grads(rule, lagrangian, t0, h, q0, v, args) -> tuple[P, P]:
     return jax.grad(rule.average, argnums=(3, 4))(lagrangian, t0, h, q0, v, args)
 
 
-def legendre_residual(rule, lagrangian, t0, h, q0, p0, v, args) -> P:
+def step_residual(rule, lagrangian, t0, h, q0, p0, v, args) -> tuple[P, P]:
     r"""The equation of the position–momentum step in the step's velocity $v$,
-    $p_0 + D_1 L_d(q_0, q_0 + h v) = p_0 + h\,\partial_{q_0}\Lambda -
-    \partial_v\Lambda$ (zero on the step: the discrete Legendre transform
-    $p_0 = -D_1 L_d$, the fibre derivative of Hirani (2000), eq. (3.4))."""
+    $-D_1 L_d(q_0, q_0 + h v) - p_0 = \partial_v\Lambda - h\,\partial_{q_0}\Lambda
+    - p_0$ (zero on the step: the discrete Legendre transform $p_0 = -D_1 L_d$, the
+    fibre derivative of Hirani (2000), eq. (3.4)), and the size of the momenta it
+    balances. Its Jacobian in $v$ tends to $\partial^2 L/\partial v^2$ as
+    $h \to 0$."""
     dq, dv = average_grads(rule, lagrangian, t0, h, q0, v, args)
-    return jtu.tree_map(lambda p, a, b: p + h * a - b, p0, dq, dv)
+    r = jtu.tree_map(lambda p, a, b: b - h * a - p, p0, dq, dv)
+    s = jtu.tree_map(
+        lambda p, a, b: jnp.abs(p) + jnp.abs(h * a) + jnp.abs(b), p0, dq, dv
+    )
+    return r, s
 
 
-def legendre_increments(rule, lagrangian, t0, h, q0, v, args) -> tuple[Q, P]:
+def step_increments(rule, lagrangian, t0, h, q0, v, args) -> tuple[Q, P]:
     r"""The increments $(q_1 - q_0, p_1 - p_0) = (h v, h\,\partial_{q_0}\Lambda)$ of
     the step with velocity $v$, where $p_1 = D_2 L_d(q_0, q_1)$."""
     dl_dq, _ = average_grads(rule, lagrangian, t0, h, q0, v, args)
@@ -142,7 +163,7 @@ def discrete_hamiltonian_map(
     p0: P,
     args: Args,
     v_guess: V,
-    root_finder: optx.AbstractRootFinder | None,
+    root_finder: optx.AbstractRootFinder,
     max_steps: int,
 ) -> tuple[Q, P, V, dfx.RESULTS]:
     r"""One step of the position–momentum form: solve $p_0 = -D_1 L_d(q_0, q_1)$ for
@@ -153,12 +174,12 @@ def discrete_hamiltonian_map(
     `(q1 - q0, p1 - p0, v, result)`: the increments, for the caller to add (with
     compensated summation), and `v = (q1 - q0)/h` the step's velocity.
     """
-    scale = momentum_scale(p0)
-
-    def residual(v):
-        res = legendre_residual(rule, lagrangian, t0, h, q0, p0, v, args)
-        return jtu.tree_map(lambda r: r / scale, res)
-
-    v, result = solve_implicit(residual, v_guess, root_finder, max_steps)
-    dq, dp = legendre_increments(rule, lagrangian, t0, h, q0, v, args)
-    return dq, dp, v, result
+    solved = solve(
+        lambda v: step_residual(rule, lagrangian, t0, h, q0, p0, v, args),
+        v_guess,
+        root_finder,
+        max_steps,
+    )
+    v = solved.value
+    dq, dp = step_increments(rule, lagrangian, t0, h, q0, v, args)
+    return dq, dp, v, solved.result

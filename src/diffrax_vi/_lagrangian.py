@@ -7,16 +7,17 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import lineax as lx
-import optimistix as optx
-from jaxtyping import Array, ArrayLike, PyTree
+from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
-from ._misc import (
-    all_finite,
-    default_root_finder,
-    momentum_scale,
-    split_state,
-    state_dtype,
+from ._misc import all_finite, split_state, state_dtype
+from ._nonlinear import (
+    DENSE_MAX,
+    Newton,
+    newton_tolerance,
+    scaled_norm,
+    singular_threshold,
+    solve,
 )
 
 
@@ -186,6 +187,18 @@ class TangentLift(AbstractLagrangian):
 def broadcast_mass(mass: PyTree[ArrayLike], q: Q) -> Q:
     """The mass as a PyTree with the structure of `q` (a scalar mass is shared)."""
     if jtu.tree_structure(mass) == jtu.tree_structure(q):
+        for m, qi in zip(jtu.tree_leaves(mass), jtu.tree_leaves(q)):
+            try:
+                shape = jnp.broadcast_shapes(jnp.shape(m), jnp.shape(qi))
+            except ValueError:
+                shape = None
+            if shape != jnp.shape(qi):
+                raise ValueError(
+                    f"A mass of shape {jnp.shape(m)} does not broadcast against "
+                    f"positions of shape {jnp.shape(qi)}: give one mass per degree of "
+                    "freedom, a scalar, or a shape that broadcasts (e.g. (bodies, 1) "
+                    "for positions of shape (bodies, 3))."
+                )
         return mass
     if len(jtu.tree_leaves(mass)) == 1 and jnp.ndim(jtu.tree_leaves(mass)[0]) == 0:
         (m,) = jtu.tree_leaves(mass)
@@ -264,6 +277,44 @@ def generalised_force(
     return jax.grad(lambda _q: lagrangian_value(lagrangian, t, _q, v, args))(q)
 
 
+def mass_regular(mass: PyTree[ArrayLike], like: PyTree) -> Bool[Array, ""]:
+    """Whether a diagonal mass is invertible to working precision: finite, and no
+    entry below `n eps` of the largest in magnitude (a zero mass, or one so small
+    that `p / m` loses every digit)."""
+    leaves = [jnp.abs(jnp.asarray(m)) for m in jtu.tree_leaves(mass)]
+    largest = jnp.max(jnp.stack([jnp.max(m) for m in leaves]))
+    smallest = jnp.min(jnp.stack([jnp.min(m) for m in leaves]))
+    n = sum(jnp.size(x) for x in jtu.tree_leaves(like))
+    threshold = singular_threshold(n, jnp.result_type(*jtu.tree_leaves(like)))
+    return jnp.isfinite(largest) & (smallest > threshold * largest)
+
+
+def legendre_residual(lagrangian: AbstractLagrangian, t, q: Q, p: P, args: Args):
+    """`v -> (dL/dv(t, q, v) - p, |dL/dv| + |p|)`: the equation of the inverse
+    Legendre map and the size of the momenta it balances."""
+
+    def residual(v):
+        dp = momentum(lagrangian, t, q, v, args)
+        r = jtu.tree_map(lambda a, b: a - b, dp, p)
+        s = jtu.tree_map(lambda a, b: jnp.abs(a) + jnp.abs(b), dp, p)
+        return r, s
+
+    return residual
+
+
+NOT_QUADRATIC = (
+    "This Lagrangian is marked `AbstractQuadraticLagrangian` but is not quadratic in "
+    "the velocity: dL/dv(v) != p at the velocity of the one linear solve the marker "
+    "allows, so every velocity would be wrong. Subclass `AbstractLagrangian` instead."
+)
+
+
+# Newton for the inverse Legendre map of a general Lagrangian: damped, so that it
+# converges from a poor start (the relativistic particle's velocity from v = 0 at
+# p0 = 3 overshoots |v| < 1 without damping).
+_LEGENDRE_NEWTON = Newton(damped=True)
+
+
 def velocity(
     lagrangian: Callable[..., ArrayLike],
     t: RealScalarLike,
@@ -277,8 +328,10 @@ def velocity(
 
     A division by the mass for an [`diffrax_vi.AbstractSeparableLagrangian`][], one
     linear solve with $\partial^2 L / \partial v^2$ for an
-    [`diffrax_vi.AbstractQuadraticLagrangian`][], and Newton's method (optimistix, with
-    a lineax LU solve) otherwise.
+    [`diffrax_vi.AbstractQuadraticLagrangian`][] of at most 64 degrees of freedom,
+    and damped Newton iterations ([`diffrax_vi.Newton`][], dense or matrix-free by
+    size) otherwise. Where it factorises $\partial^2 L / \partial v^2$ (or the mass)
+    it checks that it is invertible to working precision.
 
     **Arguments:**
 
@@ -286,63 +339,81 @@ def velocity(
         `L(t, q, v, args)`.
     - `t`, `y = (q, p)`, `args`: where to invert it, in diffrax's `(t, y, args)`
         order.
-    - `v_guess`: Newton's initial guess for a general Lagrangian. Defaults to zero,
-        from which the first Newton iterate is the exact answer for a Lagrangian
-        quadratic in `v`.
+    - `v_guess`: Newton's initial guess. Defaults to zero, from which the first
+        Newton iterate is the answer for a Lagrangian quadratic in `v`.
 
     **Returns:**
 
-    A pair `(v, result)`. `result` is a `diffrax.RESULTS`: `RESULTS.singular` where
-    $\partial^2 L / \partial v^2$ is singular (a degenerate Lagrangian), a nonlinear
-    solver failure where Newton did not converge.
+    A pair `(v, result)`, `result` a `diffrax.RESULTS`: `RESULTS.singular` where
+    $\partial^2 L / \partial v^2$ (or the mass) is singular to working precision (a
+    degenerate Lagrangian), `RESULTS.breakdown` where Newton's method could not
+    invert the map of a regular Lagrangian, `RESULTS.nonfinite` where a finite state
+    gave a NaN or inf velocity (NaN in the Lagrangian, its parameters or `args`).
     """
     lagrangian = as_lagrangian(lagrangian)
     q, p = split_state(y, "y")
     if isinstance(lagrangian, AbstractSeparableLagrangian):
         mass = broadcast_mass(lagrangian.mass, p)
         v = jtu.tree_map(lambda m, pi: pi / m, mass, p)
-        zero_mass = jnp.any(jnp.stack([jnp.any(m == 0) for m in jtu.tree_leaves(mass)]))
         result = dfx.RESULTS.where(
-            zero_mass, dfx.RESULTS.singular, dfx.RESULTS.successful
+            mass_regular(mass, p), dfx.RESULTS.successful, dfx.RESULTS.singular
         )
-        return v, result
+        return v, result_or_nonfinite(v, p, result)
 
+    residual = legendre_residual(lagrangian, t, q, p, args)
+    n = sum(jnp.size(x) for x in jtu.tree_leaves(p))
     dtype = state_dtype(p)
-
-    scale = momentum_scale(p)
-
-    def residual(v, _):
-        dp = momentum(lagrangian, t, q, v, args)
-        return jtu.tree_map(lambda a, b: (a - b) / scale, dp, p)
-
-    if isinstance(lagrangian, AbstractQuadraticLagrangian):
-        # `dL/dv` is affine in `v`: `dL/dv(v) = dL/dv(0) + M v`.
-        zeros = jtu.tree_map(jnp.zeros_like, p)
-        r0, linear = jax.linearize(lambda v: residual(v, None), zeros)
+    zeros = jtu.tree_map(jnp.zeros_like, p)
+    if isinstance(lagrangian, AbstractQuadraticLagrangian) and n <= DENSE_MAX:
+        # `dL/dv` is affine in `v`: one solve with `M = d2L/dv2` from v = 0.
+        r0, linear = jax.linearize(lambda v: residual(v)[0], zeros)
         operator = lx.FunctionLinearOperator(
             linear, jax.eval_shape(lambda: zeros), tags=lx.symmetric_tag
         )
+        lu_state = lx.LU().init(operator, {})
+        pivots = jnp.abs(jnp.diagonal(lu_state[0][0]))
+        regular = jnp.min(pivots) > singular_threshold(n, dtype) * jnp.max(pivots)
         sol = lx.linear_solve(
-            operator, jtu.tree_map(jnp.negative, r0), lx.LU(), throw=False
-        )
-        v = sol.value
-        result = dfx.RESULTS.promote(sol.result)
-    else:
-        guess = jtu.tree_map(jnp.zeros_like, p) if v_guess is None else v_guess
-        sol = optx.root_find(
-            residual,
-            default_root_finder(dtype),
-            guess,
-            max_steps=32,
+            operator,
+            jtu.tree_map(jnp.negative, r0),
+            lx.LU(),
+            state=lu_state,
             throw=False,
         )
-        v = sol.value
-        result = dfx.RESULTS.promote(sol.result)
-    # An exactly singular LU can still return finite garbage; catch it by its output.
-    result = dfx.RESULTS.where(
-        all_finite(v) | ~all_finite(p), result, dfx.RESULTS.singular
-    )
-    return v, result
+        # The marker is a promise: if `L` is not quadratic in `v` after all, the one
+        # solve is wrong, and the residual at its answer says so.
+        v = eqx.error_if(
+            sol.value,
+            regular & (scaled_norm(*residual(sol.value)) > newton_tolerance(dtype)),
+            NOT_QUADRATIC,
+        )
+        result = dfx.RESULTS.where(
+            regular, dfx.RESULTS.successful, dfx.RESULTS.singular
+        )
+    else:
+        solved = solve(
+            residual,
+            zeros if v_guess is None else v_guess,
+            _LEGENDRE_NEWTON,
+            max_steps=32,
+            tags=frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag}),
+        )
+        v = solved.value
+        regular = solved.pivot_ratio > singular_threshold(n, dtype)
+        converged = solved.result == dfx.RESULTS.successful
+        result = dfx.RESULTS.where(
+            ~regular,
+            dfx.RESULTS.singular,
+            dfx.RESULTS.where(converged, dfx.RESULTS.successful, dfx.RESULTS.breakdown),
+        )
+    return v, result_or_nonfinite(v, p, result)
+
+
+def result_or_nonfinite(v: V, p: P, result: dfx.RESULTS) -> dfx.RESULTS:
+    """`RESULTS.nonfinite` for a NaN or inf velocity from a finite momentum that no
+    other check explains (NaN from the Lagrangian, its parameters or `args`)."""
+    bad = (result == dfx.RESULTS.successful) & ~all_finite(v) & all_finite(p)
+    return dfx.RESULTS.where(bad, dfx.RESULTS.nonfinite, result)
 
 
 def energy(

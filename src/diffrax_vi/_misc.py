@@ -1,8 +1,6 @@
-import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
-import optimistix as optx
 from jaxtyping import Array, Bool, PyTree
 
 from ._custom_types import P, Q
@@ -19,40 +17,14 @@ def state_dtype(tree: PyTree) -> np.dtype:
             f"The state has dtype {dtype}, but variational solvers need floating "
             "point positions and momenta. Pass e.g. `jnp.asarray(q0, dtype=float)`."
         )
+    if jnp.finfo(dtype).bits < 32:
+        raise ValueError(
+            f"The state has dtype {dtype}: the implicit solves need float32 or "
+            "float64 (their LU and eigenvalue routines do not take 16-bit floats, "
+            "whose 3 digits could not resolve a step anyway). Cast y0 and the times "
+            "to float32."
+        )
     return dtype
-
-
-def default_tolerance(dtype: np.dtype) -> float:
-    """Newton tolerance that suits `dtype`: `sqrt(eps)`.
-
-    Newton converges quadratically, so once an update is below `sqrt(eps)` (relative)
-    the error left after applying it is at round-off. A tighter tolerance would ask the
-    convergence test to resolve round-off noise, which it reads as divergence.
-    """
-    return float(jnp.finfo(dtype).eps) ** 0.5
-
-
-def default_root_finder(dtype: np.dtype) -> optx.AbstractRootFinder:
-    """Newton's method with tolerances that suit `dtype`.
-
-    It stops when both the update and the residual are small (Cauchy termination).
-    The residuals of this package are momenta divided by `momentum_scale`, so the
-    absolute tolerance on them is relative to the size of the momentum.
-    """
-    tol = default_tolerance(dtype)
-    return optx.Newton(rtol=tol, atol=tol)
-
-
-def tree_max_abs(tree: PyTree) -> Array:
-    """The largest `|x|` over every leaf."""
-    leaves = [jnp.max(jnp.abs(x), initial=0.0) for x in jtu.tree_leaves(tree)]
-    return jnp.max(jnp.stack(leaves))
-
-
-def momentum_scale(p: PyTree) -> Array:
-    """`1 + max|p|`, the scale that momentum residuals are divided by before a root
-    find. Held constant under differentiation: it does not move the root."""
-    return jax.lax.stop_gradient(1 + tree_max_abs(p))
 
 
 def all_finite(tree: PyTree) -> Bool[Array, ""]:
@@ -89,7 +61,13 @@ def check_state(q: Q, p: P, name: str = "y0") -> None:
 
 def split_state(y: PyTree, name: str = "y0") -> tuple[Q, P]:
     """Unpack `y = (q, p)` with a trace-time error that says how to build it."""
-    if not (isinstance(y, tuple | list) and len(y) == 2):
+    if isinstance(y, list) and len(y) == 2:
+        raise ValueError(
+            "The state `(q, p)` must be a tuple, not a list: diffrax requires every "
+            "step to return the structure of y0, and the solvers return a tuple. "
+            "Pass `y0 = tuple(y0)`."
+        )
+    if not (isinstance(y, tuple) and len(y) == 2):
         raise ValueError(
             f"`{name}` must be a pair `(q, p)` of positions and momenta, got "
             f"{jtu.tree_structure(y)}. To start from a velocity `v0`, use "
@@ -103,3 +81,9 @@ def split_state(y: PyTree, name: str = "y0") -> tuple[Q, P]:
 def tree_axpy(a, x: PyTree, y: PyTree) -> PyTree:
     """`a * x + y`, leafwise."""
     return jtu.tree_map(lambda xi, yi: a * xi + yi, x, y)
+
+
+def tree_max_abs(tree: PyTree) -> Array:
+    """The largest `|x|` over every leaf."""
+    leaves = [jnp.max(jnp.abs(x), initial=0.0) for x in jtu.tree_leaves(tree)]
+    return jnp.max(jnp.stack(leaves))

@@ -1,24 +1,553 @@
-"""The nonlinear solves of the implicit steps, in one place."""
+r"""The nonlinear solves of the implicit steps and of the inverse Legendre map.
+
+Every equation solved here balances momenta, $r(w) = a(w) - b(w) = 0$, and its
+residual function returns, beside $r$, the size of the terms it balances,
+$s = |a| + |b| \ge |r|$ (elementwise). The solves stop when $\max_i |r_i|/s_i$ is
+small: a dimensionless test, unchanged by any choice of units of mass, length and
+time, with no absolute tolerance to tune, which also holds at a turning point (where
+the momenta cancel rather than vanish) and at rest (where $r = s = 0$).
+
+The root finders are `optimistix.AbstractRootFinder`s, so `optimistix.root_find` runs
+them, reports how they ended, and differentiates through the root implicitly:
+
+- [`diffrax_vi.Newton`][]: Newton's method with a dense LU solve (small systems) or a
+  matrix-free Krylov solve of Jacobian–vector products (large ones), with
+  Eisenstat–Walker forcing terms and a diagonal preconditioner; optionally damped by
+  backtracking.
+- [`diffrax_vi.SimplifiedNewton`][]: the chord method, with one LU factorisation kept
+  across iterations and steps and refreshed when convergence slows.
+- [`diffrax_vi.FixedPoint`][]: $w \leftarrow w - P^{-1}r(w)$ with the mass matrix $P$,
+  for separable Lagrangians: one force evaluation per iteration, no Jacobian.
+"""
+
+from collections.abc import Callable
+from typing import ClassVar
 
 import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.flatten_util
+import jax.lax as lax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import lineax as lx
+import numpy as np
 import optimistix as optx
-from jaxtyping import PyTree
+from equinox import AbstractVar
+from jaxtyping import Array, Int, PyTree, Scalar
 
-from ._misc import default_root_finder, state_dtype
+
+# Systems of at most this many unknowns are solved with a dense LU factorisation:
+# below it the Jacobian's n products and the factorisation cost less than a Krylov
+# solve (`benchmarks/scaling.py` measures the crossover).
+DENSE_MAX = 64
 
 
-def solve_implicit(
-    residual,
-    guess: PyTree,
-    root_finder: optx.AbstractRootFinder | None,
-    max_steps: int,
-) -> tuple[PyTree, dfx.RESULTS]:
-    """The root of `residual(w)` from `guess`, and how the solve ended, as a
-    `diffrax.RESULTS`. `root_finder=None` is Newton's method with tolerances that suit
-    the dtype of `guess` ([`diffrax_vi._misc.default_root_finder`])."""
-    if root_finder is None:
-        root_finder = default_root_finder(state_dtype(guess))
-    sol = optx.root_find(
-        lambda w, _: residual(w), root_finder, guess, max_steps=max_steps, throw=False
+def tree_size(tree: PyTree) -> int:
+    return sum(np.size(x) for x in jtu.tree_leaves(tree))
+
+
+def tree_dtype(tree: PyTree):
+    return jnp.result_type(*jtu.tree_leaves(tree))
+
+
+def scaled_norm(f: PyTree, scale: PyTree) -> Scalar:
+    """`max |f| / s`, the dimensionless size of a residual (0 where `f = s = 0`)."""
+    ratios = [
+        jnp.max(jnp.abs(fi) / jnp.where(si > 0, si, 1), initial=0.0)
+        for fi, si in zip(jtu.tree_leaves(f), jtu.tree_leaves(scale))
+    ]
+    return jnp.max(jnp.stack(ratios))
+
+
+def newton_tolerance(dtype) -> float:
+    """`sqrt(eps)`: once a Newton residual is below it, relative to the terms it
+    balances, the next update leaves an error at round-off."""
+    return float(jnp.finfo(dtype).eps) ** 0.5
+
+
+def singular_threshold(n: int, dtype) -> float:
+    """A matrix whose smallest pivot or eigenvalue is below this fraction of its
+    largest is singular to working precision."""
+    return n * float(jnp.finfo(dtype).eps)
+
+
+def _subtract(a, b):
+    return jtu.tree_map(lambda x, y: x - y, a, b)
+
+
+class AbstractVIRootFinder(optx.AbstractRootFinder):
+    """Base class of this package's root finders. The function given to
+    `optimistix.root_find` must have `has_aux=True` and return `(r, s)`: the residual
+    and the size of the terms it balances.
+
+    Options: `"preconditioner"`, positive weights like the unknowns approximating the
+    inverse of the Jacobian's diagonal (one over the mass), or `None`; `"carry"`,
+    what the previous solve handed on ([`diffrax_vi.SimplifiedNewton`][]'s
+    factorisation)."""
+
+    rtol: AbstractVar[float | None]
+    # optimistix's absolute tolerance and norm: unused, as every test here is on a
+    # residual relative to the size of its terms, in the max norm.
+    atol: ClassVar[float] = 0.0
+    norm: ClassVar[Callable] = staticmethod(optx.max_norm)
+
+    def tolerance(self, y: PyTree) -> float:
+        return newton_tolerance(tree_dtype(y)) if self.rtol is None else self.rtol
+
+    def carry_init(self, y: PyTree) -> PyTree:
+        """What the first solve starts from and hands on to the next."""
+        return None
+
+    def final_carry(self, state) -> PyTree:
+        return None
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        return y, aux, {}
+
+
+class NewtonState(eqx.Module):
+    """`rho`: the dimensionless residual of the iterate the last update started from;
+    `pivot_ratio`: the smallest over the largest pivot of the last dense
+    factorisation (1 if none); `carry`: what is handed to the next solve."""
+
+    rho: Scalar
+    rho_prev: Scalar
+    pivot_ratio: Scalar
+    step: Int[Array, ""]
+    result: optx.RESULTS
+    carry: PyTree
+
+
+def _newton_init(y, carry) -> NewtonState:
+    dtype = tree_dtype(y)
+    inf = jnp.array(jnp.inf, dtype)
+    return NewtonState(
+        inf, inf, jnp.ones((), dtype), jnp.array(0), optx.RESULTS.successful, carry
     )
-    return sol.value, dfx.RESULTS.promote(sol.result)
+
+
+def _newton_terminate(tol: float, state: NewtonState):
+    started = state.step > 0
+    converged = started & (state.rho <= tol)
+    diverged = started & ~jnp.isfinite(state.rho)
+    failed = state.result != optx.RESULTS.successful
+    result = optx.RESULTS.where(
+        failed,
+        state.result,
+        optx.RESULTS.where(
+            diverged, optx.RESULTS.nonlinear_divergence, optx.RESULTS.successful
+        ),
+    )
+    return converged | diverged | failed, result
+
+
+def _pivot_ratio(lu: Array) -> Scalar:
+    pivots = jnp.abs(jnp.diagonal(lu))
+    return jnp.min(pivots) / jnp.max(pivots)
+
+
+class Newton(AbstractVIRootFinder):
+    r"""Newton's method for the implicit steps of the variational solvers and for
+    the inverse Legendre map, as an `optimistix` root finder.
+
+    Each iteration solves $J\Delta = r$ for the Jacobian $J$ of the residual: by LU
+    on the dense Jacobian for at most 64 unknowns, else matrix-free by a Krylov method
+    on Jacobian–vector products (conjugate gradients where $J$ is symmetric positive
+    definite, as for the midpoint step of a separable Lagrangian and the Legendre
+    map; GMRES otherwise), preconditioned by the inverse mass and solved only as
+    accurately as Newton's progress needs (Eisenstat–Walker forcing, choice 2). It
+    stops after the update from an iterate whose residual is below `rtol` relative
+    to the terms it balances: with quadratic convergence the error left is at
+    round-off, as with a dense solve.
+
+    **Arguments:**
+
+    - `rtol`: the dimensionless tolerance; `None` for $\sqrt\epsilon$ of the dtype.
+    - `linear_solver`: `"auto"` (dense up to 64 unknowns, Krylov beyond), `"dense"`,
+        `"krylov"`, or any `lineax.AbstractLinearSolver`.
+    - `damped`: backtrack along each Newton direction until the residual decreases
+        and stays finite: convergence from a poor start for monotone problems such
+        as the inverse Legendre map of a relativistic particle.
+    - `krylov_max_steps`: the iterations one Krylov solve may take.
+    """
+
+    rtol: float | None = None
+    linear_solver: str | lx.AbstractLinearSolver = eqx.field(
+        static=True, default="auto"
+    )
+    damped: bool = eqx.field(static=True, default=False)
+    krylov_max_steps: int = eqx.field(static=True, default=200)
+
+    def __check_init__(self):
+        if isinstance(self.linear_solver, str) and self.linear_solver not in (
+            "auto",
+            "dense",
+            "krylov",
+        ):
+            raise ValueError(
+                "Newton(linear_solver=...) must be 'auto', 'dense', 'krylov' or a "
+                f"lineax solver; got {self.linear_solver!r}."
+            )
+
+    def dense(self, y: PyTree) -> bool:
+        """Whether the linear solves are dense LU."""
+        if self.linear_solver == "auto":
+            return tree_size(y) <= DENSE_MAX
+        return self.linear_solver == "dense"
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        return _newton_init(y, options.get("carry"))
+
+    def _krylov_solve(self, lin, y, f, options, tags, forcing) -> lx.Solution:
+        """`J^{-1} f` by CG or GMRES on `J / c` and `f / |f|`, with `c` the size of
+        `J` along `f`: lineax's breakdown tests are absolute (GMRES breaks down on a
+        right-hand side below about 1e-16), so the solve must not see the units."""
+        f_size = jnp.max(jnp.stack([jnp.max(jnp.abs(x)) for x in jtu.tree_leaves(f)]))
+        f_size = lax.stop_gradient(jnp.where(f_size > 0, f_size, 1))
+        rhs = jtu.tree_map(lambda x: x / f_size, f)
+        preconditioner = options.get("preconditioner")
+        weigh = lambda tree: (
+            tree
+            if preconditioner is None
+            else jtu.tree_map(lambda p, x: p * x, preconditioner, tree)
+        )
+        along = jtu.tree_leaves(weigh(lin(rhs)))
+        j_size = jnp.max(jnp.stack([jnp.max(jnp.abs(x)) for x in along]))
+        j_size = lax.stop_gradient(jnp.where(j_size > 0, j_size, 1))
+        operator = lx.FunctionLinearOperator(
+            lambda w: jtu.tree_map(lambda x: x / j_size, lin(w)),
+            jax.eval_shape(lambda: y),
+            tags=tags,
+        )
+        lx_options = {}
+        if preconditioner is not None:
+            lx_options["preconditioner"] = lx.DiagonalLinearOperator(
+                preconditioner, tags=(lx.positive_semidefinite_tag,)
+            )
+        if lx.positive_semidefinite_tag in tags:
+            solver = lx.CG(rtol=forcing, atol=0.0, max_steps=self.krylov_max_steps)
+        else:
+            solver = lx.GMRES(
+                rtol=forcing,
+                atol=0.0,
+                max_steps=self.krylov_max_steps,
+                restart=min(20, self.krylov_max_steps),
+            )
+        sol = lx.linear_solve(operator, rhs, solver, options=lx_options, throw=False)
+        value = jtu.tree_map(lambda x: x * (f_size / j_size), sol.value)
+        return eqx.tree_at(lambda s: s.value, sol, value)
+
+    def step(self, fn, y, args, options, state, tags):
+        f, lin, scale = jax.linearize(lambda _y: fn(_y, args), y, has_aux=True)
+        rho = scaled_norm(f, scale)
+        operator = lx.FunctionLinearOperator(lin, jax.eval_shape(lambda: y), tags=tags)
+        pivot_ratio = state.pivot_ratio
+        if not isinstance(self.linear_solver, str):
+            sol = lx.linear_solve(operator, f, self.linear_solver, throw=False)
+        elif self.dense(y):
+            lu_state = lx.LU().init(operator, {})
+            pivot_ratio = _pivot_ratio(lu_state[0][0])
+            sol = lx.linear_solve(operator, f, lx.LU(), state=lu_state, throw=False)
+        else:
+            tol = self.tolerance(y)
+            # Eisenstat-Walker choice 2 (gamma = 0.9, alpha = 2), never asking for
+            # more than the Newton tolerance needs.
+            forcing = jnp.clip(
+                0.9 * (rho / state.rho_prev) ** 2,
+                0.5 * tol / jnp.maximum(rho, tol),
+                0.5,
+            )
+            forcing = jnp.where(jnp.isfinite(state.rho_prev), forcing, 0.5)
+            sol = self._krylov_solve(lin, y, f, options, tags, forcing)
+        delta = sol.value
+        if self.damped:
+            y_new = _backtrack(fn, y, args, delta, rho, scale)
+        else:
+            y_new = _subtract(y, delta)
+        new = NewtonState(
+            rho,
+            rho,
+            pivot_ratio,
+            state.step + 1,
+            optx.RESULTS.promote(sol.result),
+            state.carry,
+        )
+        return y_new, new, scale
+
+    def terminate(self, fn, y, args, options, state, tags):
+        return _newton_terminate(self.tolerance(y), state)
+
+
+def _backtrack(fn, y, args, delta, rho, scale):
+    """The first of `y - delta`, `y - delta/2`, ... (at most 40 halvings) whose
+    residual is finite and below `(1 - alpha/4) rho` (Armijo's sufficient decrease),
+    both measured against the scale `scale` of the iterate the search starts from: a
+    scale that moved with the trial point could make a worse point look better (the
+    terms of a relativistic Legendre map grow without bound towards |v| = 1, so
+    their ratio to the residual falls there)."""
+
+    def trial(alpha):
+        y_new = jtu.tree_map(lambda a, b: a - alpha * b, y, delta)
+        f, _ = fn(y_new, args)
+        return scaled_norm(f, scale)
+
+    def rejected(carry):
+        alpha, k = carry
+        rho_new = trial(alpha)
+        bad = ~(jnp.isfinite(rho_new) & (rho_new <= (1 - alpha / 4) * rho))
+        return bad & (k < 40) & (rho > 0)
+
+    alpha, _ = lax.while_loop(
+        rejected, lambda c: (c[0] / 2, c[1] + 1), (jnp.ones_like(rho), 0)
+    )
+    return jtu.tree_map(lambda a, b: a - alpha * b, y, delta)
+
+
+class SimplifiedNewton(AbstractVIRootFinder):
+    r"""The simplified Newton (chord) method, with one dense LU factorisation of the
+    Jacobian kept across iterations *and steps*.
+
+    An iteration costs one residual evaluation and two triangular solves. The
+    Jacobian is refactorised at the first step and whenever an iteration contracts
+    the residual by less than `kappa`; for smooth motion at moderate steps that is
+    rare, so a step costs little more than the fixed-point iteration, while, unlike
+    it, converging on stiff problems. Dense, so for small and medium systems.
+
+    **Arguments:**
+
+    - `rtol`: as for [`diffrax_vi.Newton`][].
+    - `kappa`: the contraction per iteration below which the factorisation is kept
+        (default 0.25).
+    """
+
+    rtol: float | None = None
+    kappa: float = 0.25
+
+    def carry_init(self, y: PyTree) -> PyTree:
+        n = tree_size(y)
+        dtype = tree_dtype(y)
+        # A placeholder factorisation, marked stale so that the first step factorises.
+        return (
+            jnp.eye(n, dtype=dtype),
+            jnp.arange(n, dtype=jnp.int32),
+            jnp.array(False),
+        )
+
+    def final_carry(self, state: NewtonState) -> PyTree:
+        return state.carry
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        carry = options.get("carry")
+        return _newton_init(y, self.carry_init(y) if carry is None else carry)
+
+    def step(self, fn, y, args, options, state, tags):
+        flat, unravel = jax.flatten_util.ravel_pytree(y)
+        f, scale = fn(y, args)
+        rho = scaled_norm(f, scale)
+        lu, piv, fresh = state.carry
+        refactor = ~fresh | ~(rho <= self.kappa * state.rho_prev)
+
+        def factorise():
+            jac = jax.jacfwd(
+                lambda x: jax.flatten_util.ravel_pytree(fn(unravel(x), args)[0])[0]
+            )(flat)
+            lu, piv = jax.scipy.linalg.lu_factor(jac)
+            return lu, piv, jnp.array(True)
+
+        lu, piv, fresh = lax.cond(refactor, factorise, lambda: (lu, piv, fresh))
+        delta = jax.scipy.linalg.lu_solve(
+            (lu, piv), jax.flatten_util.ravel_pytree(f)[0]
+        )
+        result = optx.RESULTS.where(
+            jnp.all(jnp.isfinite(delta)), optx.RESULTS.successful, optx.RESULTS.singular
+        )
+        new = NewtonState(
+            rho, rho, _pivot_ratio(lu), state.step + 1, result, (lu, piv, fresh)
+        )
+        return unravel(flat - delta), new, scale
+
+    def terminate(self, fn, y, args, options, state, tags):
+        return _newton_terminate(self.tolerance(y), state)
+
+
+class FixedPointState(eqx.Module):
+    """The dimensionless size of the last update and of the one before."""
+
+    size: Scalar
+    size_prev: Scalar
+    step: Int[Array, ""]
+
+
+class FixedPoint(AbstractVIRootFinder):
+    r"""The fixed-point iteration $w \leftarrow w - P^{-1}r(w)$ with the mass matrix
+    $P$: for the stage equations of a separable Lagrangian,
+    $V = M^{-1}\big(p_0 + h\,\bar a\,F(Q(V))\big)$, one force evaluation per iteration
+    and no Jacobian.
+
+    It converges while $h^2\lVert M^{-1}\nabla^2 V\rVert$ is small (non-stiff steps),
+    and stops with `RESULTS.nonlinear_divergence` as soon as an iteration contracts
+    by less than `max_rate`. Where it converges, the Jacobian of the stage equations
+    is within a factor `max_rate` of the mass matrix, so the root is the one that
+    continues the motion.
+
+    **Arguments:**
+
+    - `rtol`: the tolerance on an update relative to the size of the terms of the
+        equation; `None` for `64 eps` of the dtype (the iteration converges linearly,
+        so it runs to near round-off).
+    - `max_rate`: the slowest contraction per iteration accepted (default 0.5).
+    """
+
+    rtol: float | None = None
+    max_rate: float = 0.5
+
+    def tolerance(self, y: PyTree) -> float:
+        if self.rtol is not None:
+            return self.rtol
+        return 64 * float(jnp.finfo(tree_dtype(y)).eps)
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        if options.get("preconditioner") is None:
+            raise ValueError(
+                "FixedPoint iterates with the mass matrix of a separable Lagrangian "
+                "(diffrax_vi.AbstractSeparableLagrangian); for this Lagrangian use "
+                "diffrax_vi.Newton() or diffrax_vi.SimplifiedNewton()."
+            )
+        inf = jnp.array(jnp.inf, tree_dtype(y))
+        return FixedPointState(inf, inf, jnp.array(0))
+
+    def step(self, fn, y, args, options, state, tags):
+        f, scale = fn(y, args)
+        inverse_mass = options["preconditioner"]
+        weigh = lambda tree: jtu.tree_map(lambda p, x: p * x, inverse_mass, tree)
+        delta = weigh(f)
+        size = scaled_norm(delta, weigh(scale))
+        return (
+            _subtract(y, delta),
+            FixedPointState(size, state.size, state.step + 1),
+            scale,
+        )
+
+    def terminate(self, fn, y, args, options, state, tags):
+        converged = state.size <= self.tolerance(y)
+        too_slow = (
+            (state.step >= 2)
+            & ~converged
+            & ~(state.size <= self.max_rate * state.size_prev)
+        )
+        result = optx.RESULTS.where(
+            too_slow, optx.RESULTS.nonlinear_divergence, optx.RESULTS.successful
+        )
+        return (state.step > 0) & (converged | too_slow), result
+
+
+class Solved(eqx.Module):
+    """The outcome of [`solve`][]: the root, how the solve ended, the smallest over
+    the largest pivot of its last dense factorisation (1 if it made none), and what
+    it hands to the next solve."""
+
+    value: PyTree
+    result: dfx.RESULTS
+    pivot_ratio: Scalar
+    carry: PyTree
+
+
+def solve(
+    residual: Callable[[PyTree], tuple[PyTree, PyTree]],
+    guess: PyTree,
+    root_finder: optx.AbstractRootFinder,
+    max_steps: int,
+    *,
+    preconditioner: PyTree | None = None,
+    tags: frozenset = frozenset(),
+    carry: PyTree = None,
+) -> Solved:
+    """The root of `residual(w) -> (r, s)` from `guess`.
+
+    Any other `optimistix` root finder gets the residual divided by the size of its
+    largest term, so that its own tolerances are relative."""
+    dtype = tree_dtype(guess)
+    if isinstance(root_finder, AbstractVIRootFinder):
+        sol = optx.root_find(
+            lambda w, _: residual(w),
+            root_finder,
+            guess,
+            options=dict(preconditioner=preconditioner, carry=carry),
+            has_aux=True,
+            max_steps=max_steps,
+            tags=tags,
+            throw=False,
+        )
+        ratio = getattr(sol.state, "pivot_ratio", jnp.ones((), dtype))
+        return Solved(
+            sol.value,
+            dfx.RESULTS.promote(sol.result),
+            ratio,
+            root_finder.final_carry(sol.state),
+        )
+
+    def relative(w, _):
+        r, s = residual(w)
+        size = lax.stop_gradient(
+            jnp.max(jnp.stack([jnp.max(x, initial=0.0) for x in jtu.tree_leaves(s)]))
+        )
+        return jtu.tree_map(lambda x: x / jnp.where(size > 0, size, 1), r)
+
+    sol = optx.root_find(
+        relative, root_finder, guess, max_steps=max_steps, tags=tags, throw=False
+    )
+    return Solved(
+        sol.value, dfx.RESULTS.promote(sol.result), jnp.ones((), dtype), carry
+    )
+
+
+def lanczos_extremes(
+    matvec: Callable[[Array], Array], n: int, dtype, steps: int = 24
+) -> tuple[Scalar, Scalar]:
+    """Estimates of the smallest and largest eigenvalues of a symmetric operator on
+    `R^n`, from `steps` Lanczos iterations (with full reorthogonalisation) from a
+    fixed start vector: the extreme Ritz values, which converge first."""
+    k = min(steps, n)
+    v0 = jnp.cos(jnp.arange(1, n + 1, dtype=dtype) * 1.2345)  # not an eigenvector
+    v0 = v0 / jnp.linalg.norm(v0)
+    basis = jnp.zeros((k, n), dtype).at[0].set(v0)
+    alphas = jnp.zeros(k, dtype)
+    betas = jnp.zeros(k, dtype)
+
+    def body(j, carry):
+        basis, alphas, betas = carry
+        w = matvec(basis[j])
+        alpha = jnp.dot(w, basis[j])
+        # Full reorthogonalisation against every vector so far (unused rows are 0).
+        w = w - basis.T @ (basis @ w)
+        w = w - basis.T @ (basis @ w)
+        beta = jnp.linalg.norm(w)
+        nxt = jnp.where(beta > 0, w / jnp.where(beta > 0, beta, 1), 0.0)
+        basis = lax.cond(j + 1 < k, lambda: basis.at[j + 1].set(nxt), lambda: basis)
+        return basis, alphas.at[j].set(alpha), betas.at[j].set(beta)
+
+    _, alphas, betas = lax.fori_loop(0, k, body, (basis, alphas, betas))
+    tridiagonal = jnp.diag(alphas) + jnp.diag(betas[:-1], 1) + jnp.diag(betas[:-1], -1)
+    ritz = jnp.linalg.eigvalsh(tridiagonal)
+    return ritz[0], ritz[-1]
+
+
+def symmetric_extremes(matvec: Callable[[Array], Array], n: int, dtype):
+    """The smallest and largest eigenvalues of a symmetric operator on `R^n`, and
+    the smallest in magnitude: exact from the dense matrix up to `DENSE_MAX`, else
+    Lanczos estimates (the smallest magnitude then only among the extreme ones)."""
+    if n <= DENSE_MAX:
+        matrix = jax.vmap(matvec)(jnp.eye(n, dtype=dtype))
+        eigs = jnp.linalg.eigvalsh(0.5 * (matrix + matrix.T))
+        return eigs[0], eigs[-1], jnp.min(jnp.abs(eigs))
+    smallest, largest = lanczos_extremes(matvec, n, dtype)
+    size = jnp.maximum(jnp.abs(smallest), jnp.abs(largest))
+    # An indefinite operator's smallest magnitude is inside the spectrum, which
+    # Lanczos does not resolve: not judged singular.
+    least = jnp.where(
+        jnp.sign(smallest) == jnp.sign(largest),
+        jnp.minimum(jnp.abs(smallest), jnp.abs(largest)),
+        size,
+    )
+    return smallest, largest, least

@@ -2,6 +2,7 @@ from collections.abc import Callable
 
 import diffrax as dfx
 import equinox as eqx
+import jax.numpy as jnp
 import jax.tree_util as jtu
 from jaxtyping import ArrayLike, PyTree
 
@@ -12,9 +13,24 @@ from ._lagrangian import (
     as_lagrangian,
     broadcast_mass,
     generalised_force,
+    mass_regular,
     velocity,
 )
 from ._misc import all_finite, split_state
+
+
+VF_ERRORS = (
+    "The Lagrangian is degenerate at this state: d^2L/dv^2 is singular to working "
+    "precision, so the velocity is not determined by the momentum. Make the kinetic "
+    "energy positive definite in every velocity component (a zero mass, or a "
+    "velocity entering L linearly, is degenerate).",
+    "Newton's method could not invert the Legendre map p = dL/dv at this state, "
+    "though d^2L/dv^2 is regular there: the momentum may lie outside the map's range "
+    "(|p| has no velocity, e.g. beyond the speed limit of a relativistic L). Check "
+    "y0 and the step size.",
+    "The Lagrangian or its derivatives gave NaN or inf at a finite state: check its "
+    "parameters and args.",
+)
 
 
 class LagrangianTerm(dfx.AbstractTerm):
@@ -38,9 +54,10 @@ class LagrangianTerm(dfx.AbstractTerm):
     !!! warning
 
         A diffrax vector field cannot report a failed step. If the Legendre map cannot
-        be inverted (a degenerate Lagrangian, $\partial^2 L / \partial v^2$ singular),
-        `vf` raises an `EquinoxRuntimeError` that names the cause rather than return a
-        NaN that a fixed-step Runge–Kutta solve would report as a success.
+        be inverted at a finite state, `vf` raises an `EquinoxRuntimeError` that names
+        the cause (a degenerate Lagrangian; a momentum Newton's method cannot invert;
+        NaN from the Lagrangian) rather than return a NaN that a fixed-step
+        Runge–Kutta solve would report as a success.
     """
 
     lagrangian: AbstractLagrangian
@@ -70,13 +87,17 @@ class LagrangianTerm(dfx.AbstractTerm):
 
     def vf(self, t: RealScalarLike, y: PyTree, args: Args) -> PyTree:
         f, result = self.hamilton(t, y, args)
-        return eqx.error_if(
+        # A vector field cannot return a RESULTS: each cause raises its own message.
+        index = jnp.where(
+            result == dfx.RESULTS.singular,
+            0,
+            jnp.where(result == dfx.RESULTS.breakdown, 1, 2),
+        )
+        return eqx.branched_error_if(
             f,
             (result != dfx.RESULTS.successful) & all_finite(y),
-            "The Legendre map p = dL/dv could not be inverted: d^2L/dv^2 is singular "
-            "(or Newton's method did not converge) at this state. The Lagrangian must "
-            "be regular: check that its kinetic energy is positive definite in every "
-            "velocity component.",
+            index,
+            VF_ERRORS,
         )
 
     def contr(self, t0: RealScalarLike, t1: RealScalarLike, **kwargs) -> RealScalarLike:
@@ -87,10 +108,10 @@ class LagrangianTerm(dfx.AbstractTerm):
 
 
 class _SeparableVelocity(eqx.Module):
-    lagrangian: AbstractSeparableLagrangian
+    mass: PyTree
 
     def __call__(self, t, p, args):
-        mass = broadcast_mass(self.lagrangian.mass, p)
+        mass = broadcast_mass(self.mass, p)
         return jtu.tree_map(lambda m, pi: pi / m, mass, p)
 
 
@@ -128,7 +149,17 @@ def separable_terms(
             "`diffrax_vi.AbstractSeparableLagrangian` or use "
             "`diffrax_vi.SeparableLagrangian(potential, mass)`."
         )
-    return dfx.ODETerm(_SeparableVelocity(lagrangian)), dfx.ODETerm(
+    # Checked once, here, rather than at every step: a zero mass would give a NaN
+    # position that the momentum, which every step checks, need not see.
+    mass = jtu.tree_map(jnp.asarray, lagrangian.mass)
+    mass = eqx.error_if(
+        mass,
+        ~mass_regular(mass, mass),
+        "The mass of this separable Lagrangian is singular: an entry is zero (or "
+        "below eps times the largest), or not finite. Every degree of freedom needs "
+        "a positive mass.",
+    )
+    return dfx.ODETerm(_SeparableVelocity(mass)), dfx.ODETerm(
         _SeparableForce(lagrangian)
     )
 

@@ -3,56 +3,166 @@
 and returns the exit code."""
 
 import argparse
+import math
+import pathlib
 import sys
 
 import jax
 
 
-DEFAULT_SOLVERS = "MidpointVI,StormerVerlet,Tsit5,Dopri8"
+DEFAULT_SOLVERS = "MidpointVI,StormerVerlet,KahanLi8,Tsit5,Dopri8,Dopri8+PID"
+DEFAULT_OUT = "diffrax-vi-results"
 DTYPES = ("float64", "float32")
+# The files each command writes, removed from `--out` by `--force` before it writes.
+OUTPUTS = {
+    "drift": ("drift.csv", "drift.json", "drift_*.png"),
+    "work-precision": ("work_precision.*",),
+    "seed": ("chapter5.md", "figure_*.png"),
+}
+
+
+class UsageError(Exception):
+    """A bad option: reported on one line with exit code 2, before any work."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        # One line, not argparse's usage block: `prog: error: message`.
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def _number(kind, name: str, low: float, high: float = math.inf, strict=True):
+    """An argparse type: a finite `kind` in (low, high) (or [low, high))."""
+
+    def parse(text: str):
+        try:
+            x = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{name} must be {'an integer' if kind is int else 'a number'}, "
+                f"got {text!r}"
+            ) from None
+        inside = (x > low if strict else x >= low) and x < high
+        if not (math.isfinite(x) and inside):
+            bound = f"> {low:g}" if strict else f">= {low:g}"
+            above = "" if high == math.inf else f" and < {high:g}"
+            raise argparse.ArgumentTypeError(
+                f"{name} must be finite, {bound}{above}; got {text!r}"
+            )
+        return x
+
+    return parse
+
+
+def _list(item):
+    def parse(text: str):
+        values = [item(x.strip()) for x in text.split(",") if x.strip()]
+        if not values:
+            raise argparse.ArgumentTypeError(f"names no value: {text!r}")
+        return values
+
+    return parse
+
+
+POSITIVE = _number(float, "a horizon", 0.0)
+COUNT = _number(int, "a count", 0.0)
+RTOL = _number(float, "a tolerance", 0.0, 1.0)
+SPREAD = _number(float, "a spread", 0.0, strict=False)
 
 
 def _scene(name: str):
     from .scenes import SCENES
 
     if name not in SCENES:
-        raise SystemExit(
-            f"diffrax-vi: unknown scene {name!r}. Choose from: {', '.join(SCENES)}."
-        )
+        raise UsageError(f"unknown scene {name!r}. Choose from: {', '.join(SCENES)}.")
     return SCENES[name]()
 
 
-def _methods(solvers: str, rtol: float):
+def _methods(solvers: str, rtol: float, scene):
+    """The methods named, each checked to take the scene's Lagrangian."""
     from .study import as_method
 
     names = [s.strip() for s in solvers.split(",") if s.strip()]
     if not names:
-        raise SystemExit("diffrax-vi: --solvers names no solver.")
+        raise UsageError("--solvers names no solver.")
     try:
-        return [as_method(name, rtol) for name in names]
+        methods = [as_method(name, rtol) for name in names]
+        for method in methods:
+            method.terms(scene)
     except ValueError as e:
-        raise SystemExit(f"diffrax-vi: {e}") from None
+        raise UsageError(str(e)) from None
+    return methods
 
 
-def _numbers(text: str, kind):
+def _out(args: argparse.Namespace, scene: str) -> pathlib.Path:
+    """The folder this run writes into, made and tested for writing before any
+    work. By default a fresh `diffrax-vi-results/<command>-<scene>-<k>`; a folder
+    named with `--out` must be empty, unless `--force` (which removes the files this
+    command wrote there before, so that no stale figure is left beside new ones)."""
+    if args.out is None:
+        root = pathlib.Path(DEFAULT_OUT)
+        k = 1
+        while (root / f"{args.command}-{scene}-{k}").exists():
+            k += 1
+        out = root / f"{args.command}-{scene}-{k}"
+    else:
+        out = pathlib.Path(args.out)
+        if out.exists() and not out.is_dir():
+            raise UsageError(f"--out {out} is a file, not a folder.")
+        if out.is_dir() and any(out.iterdir()):
+            if not args.force:
+                raise UsageError(
+                    f"--out {out} is not empty: pass --force to replace the results "
+                    "there, or name another folder (without --out, each run writes "
+                    f"a new folder in {DEFAULT_OUT}/)."
+                )
+            for pattern in OUTPUTS[args.command]:
+                for stale in out.glob(pattern):
+                    stale.unlink()
     try:
-        return [kind(x) for x in text.split(",") if x.strip()]
-    except ValueError:
-        raise SystemExit(f"diffrax-vi: expected comma-separated numbers, got {text!r}")
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".diffrax-vi-write-test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as e:
+        raise UsageError(f"cannot write into --out {out}: {e.strerror}.") from None
+    return out
 
 
-def _report(study, out: str) -> int:
+def _report(study, out: pathlib.Path) -> int:
     print(study.table())
+    if hasattr(study, "verdict"):
+        print(study.verdict())
     for path in study.write(out):
         print(f"wrote {path}")
     return 0
 
 
+def _study(call, **kwargs):
+    """Check or run a study: a setting it rejects before any work is a usage
+    error."""
+    try:
+        return call(**kwargs)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+
+
 def _drift(args: argparse.Namespace) -> int:
     from .study import drift
+    from .study._drift import check_drift
 
     scene = _scene(args.scene)
-    methods = _methods(args.solvers, args.rtol)
+    methods = _methods(args.solvers, args.rtol, scene)
+    _study(
+        check_drift,
+        scene=scene,
+        periods=args.periods,
+        steps_per_period=args.steps_per_period,
+        n_save=args.save,
+        dtype=args.dtype,
+        ensemble=args.ensemble,
+    )
+    out = _out(args, scene.name)
     members = f", ensemble of {args.ensemble}" if args.ensemble else ""
     print(
         f"{scene.name}: {args.periods:g} periods, {args.steps_per_period} steps per "
@@ -60,48 +170,65 @@ def _drift(args: argparse.Namespace) -> int:
         + ", ".join(m.name for m in methods),
         flush=True,
     )
-    try:
-        study = drift(
-            scene,
-            methods,
-            periods=args.periods,
-            steps_per_period=args.steps_per_period,
-            n_save=args.save,
-            dtype=args.dtype,
-            ensemble=args.ensemble,
-            spread=args.spread,
-            progress=args.progress,
-        )
-    except ValueError as e:
-        raise SystemExit(f"diffrax-vi: {e}") from None
-    return _report(study, args.out)
+    study = _study(
+        drift,
+        scene=scene,
+        solvers=methods,
+        periods=args.periods,
+        steps_per_period=args.steps_per_period,
+        n_save=args.save,
+        dtype=args.dtype,
+        ensemble=args.ensemble,
+        spread=args.spread,
+        progress=args.progress,
+    )
+    return _report(study, out)
 
 
 def _work_precision(args: argparse.Namespace) -> int:
     from .study import work_precision
+    from .study._checks import step_count
 
     scene = _scene(args.scene)
-    methods = _methods(args.solvers, 1e-8)
+    methods = _methods(args.solvers, 1e-8, scene)
+    for spp in args.steps_per_period:
+        _study(step_count, periods=args.periods, steps_per_period=spp)
+    out = _out(args, scene.name)
     print(f"{scene.name}: {args.periods:g} periods, {args.dtype}", flush=True)
-    study = work_precision(
-        scene,
-        methods,
+    study = _study(
+        work_precision,
+        scene=scene,
+        solvers=methods,
         periods=args.periods,
-        steps_per_period=_numbers(args.steps_per_period, int),
-        rtols=_numbers(args.rtols, float),
+        steps_per_period=args.steps_per_period,
+        rtols=args.rtols,
         dtype=args.dtype,
     )
-    return _report(study, args.out)
+    return _report(study, out)
 
 
 def _seed(args: argparse.Namespace) -> int:
     from .thesis import chapter5
 
-    print(chapter5(args.out))
+    print(chapter5(_out(args, "chapter5")))
     return 0
 
 
-def _common(parser: argparse.ArgumentParser, solvers: str, out: str) -> None:
+def _output(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--out",
+        default=None,
+        help=f"folder for tables and figures (default: a new folder in {DEFAULT_OUT}/"
+        " for each run); it must be empty unless --force",
+    )
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the results of this command already in --out",
+    )
+
+
+def _common(parser: argparse.ArgumentParser, solvers: str) -> None:
     parser.add_argument("--scene", default="kepler", help="scene to integrate")
     parser.add_argument(
         "--solvers",
@@ -110,11 +237,11 @@ def _common(parser: argparse.ArgumentParser, solvers: str, out: str) -> None:
         "solver with a PIDController (e.g. Tsit5+PID)",
     )
     parser.add_argument("--dtype", choices=DTYPES, default="float64")
-    parser.add_argument("--out", default=out, help="folder for tables and figures")
+    _output(parser)
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="diffrax-vi",
         description="Variational integrators for diffrax: energy-drift studies.",
     )
@@ -131,29 +258,34 @@ def _parser() -> argparse.ArgumentParser:
         ),
         formatter_class=formatter,
     )
-    _common(drift, DEFAULT_SOLVERS, "diffrax-vi-results")
-    drift.add_argument("--periods", type=float, default=1000, help="horizon, periods")
+    _common(drift, DEFAULT_SOLVERS)
     drift.add_argument(
-        "--steps-per-period", type=int, default=200, help="fixed steps per period"
+        "--periods",
+        type=POSITIVE,
+        default=1000,
+        help="horizon, periods (periods x steps-per-period must be a whole number)",
+    )
+    drift.add_argument(
+        "--steps-per-period", type=COUNT, default=200, help="fixed steps per period"
     )
     drift.add_argument(
         "--save",
-        type=int,
+        type=COUNT,
         default=1000,
         help="number of intervals to record the largest errors over",
     )
     drift.add_argument(
-        "--rtol", type=float, default=1e-8, help="tolerance of +PID solvers"
+        "--rtol", type=RTOL, default=1e-8, help="tolerance of +PID solvers"
     )
     drift.add_argument(
         "--ensemble",
-        type=int,
+        type=COUNT,
         default=None,
         help="run this many nearby initial states at once (vmapped, sharded over "
         "devices) and report the worst",
     )
     drift.add_argument(
-        "--spread", type=float, default=1e-3, help="relative spread of the ensemble"
+        "--spread", type=SPREAD, default=1e-3, help="relative spread of the ensemble"
     )
     drift.add_argument(
         "--progress", action="store_true", help="show a progress bar for each solve"
@@ -170,17 +302,19 @@ def _parser() -> argparse.ArgumentParser:
         ),
         formatter_class=formatter,
     )
-    _common(
-        wp,
-        "StormerVerlet,MidpointVI,KahanLi6,Tsit5,Tsit5+PID,Dopri8+PID",
-        "diffrax-vi-results",
-    )
-    wp.add_argument("--periods", type=float, default=100, help="horizon, periods")
+    _common(wp, "StormerVerlet,MidpointVI,KahanLi6,Tsit5,Tsit5+PID,Dopri8+PID")
+    wp.add_argument("--periods", type=POSITIVE, default=100, help="horizon, periods")
     wp.add_argument(
-        "--steps-per-period", default="50,100,200,400", help="comma-separated grid"
+        "--steps-per-period",
+        type=_list(COUNT),
+        default=[50, 100, 200, 400],
+        help="comma-separated grid",
     )
     wp.add_argument(
-        "--rtols", default="1e-6,1e-8,1e-10", help="comma-separated tolerances"
+        "--rtols",
+        type=_list(RTOL),
+        default=[1e-6, 1e-8, 1e-10],
+        help="comma-separated tolerances",
     )
     wp.set_defaults(run=_work_precision)
 
@@ -193,22 +327,29 @@ def _parser() -> argparse.ArgumentParser:
         ),
         formatter_class=formatter,
     )
-    seed.add_argument("--out", default="seed-results", help="folder for the results")
+    _output(seed)
     seed.set_defaults(run=_seed, dtype="float64")
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run the command line on `argv` (default: `sys.argv[1:]`); returns the exit
-    code."""
+    code: 0 on success, 2 for a bad option (one line on stderr, before any work)."""
     parser = _parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as e:  # --help, or a bad option (already printed)
+        return int(e.code or 0)
     if args.command is None:
         parser.print_help()
         return 2
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
-    return args.run(args)
+    try:
+        return args.run(args)
+    except UsageError as e:
+        print(f"diffrax-vi {args.command}: error: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -126,6 +126,19 @@ def unwrap_term(terms: dfx.AbstractTerm, solver: str) -> tuple[LagrangianTerm, A
     return terms, direction
 
 
+def check_times(t0: RealScalarLike, t1: RealScalarLike, state: PyTree) -> PyTree:
+    """`state`, or an error if the first step is not finite: diffeqsolve then takes
+    no step at all and would report success. (Threaded through the solver state, so
+    that it cannot be dropped as unused.)"""
+    return eqx.error_if(
+        state,
+        ~jnp.isfinite(t1 - t0),
+        "The first step from t0 to t0 + dt0 (or to t1) is NaN or infinite: check "
+        "that t0, t1 and dt0 are finite numbers. diffeqsolve would otherwise take no "
+        "step and report success.",
+    )
+
+
 class StepInputs(eqx.Module):
     """One step as a method sees it: the term, the physical start and end times, the
     signed step `h` (all in the state's dtype), the state, `args`, and the
@@ -195,12 +208,16 @@ class VIState(eqx.Module):
     compensation: PyTree | None
 
 
-def step_result(result: dfx.RESULTS, y1: PyTree) -> dfx.RESULTS:
-    """The method's result, or `RESULTS.nonfinite` for a step that succeeded but
-    produced NaN or inf (which a non-finite start always does). A method that can
-    fail by itself reports a non-finite start as such (see `solve_step`)."""
+def step_result(result: dfx.RESULTS, y1: PyTree) -> tuple[PyTree, dfx.RESULTS]:
+    """The step's output and result: the method's result, or `RESULTS.nonfinite` for
+    a step that succeeded but produced NaN or inf (which a non-finite start always
+    does; a method that can fail by itself reports a non-finite start as such, see
+    `start_result`). A failed step's output is NaN: diffrax keeps the output of the
+    step that failed, and an unconverged iterate must never pass for a state."""
     nonfinite = (result == dfx.RESULTS.successful) & ~sum_is_finite(y1)
-    return dfx.RESULTS.where(nonfinite, dfx.RESULTS.nonfinite, result)
+    result = dfx.RESULTS.where(nonfinite, dfx.RESULTS.nonfinite, result)
+    ok = result == dfx.RESULTS.successful
+    return jtu.tree_map(lambda x: jnp.where(ok, x, jnp.nan), y1), result
 
 
 def hermite_dense_info(
@@ -267,7 +284,7 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
             Substep(1.0, t0, t1),
             type(self).__name__,
         )
-        return VIState(self.method_init(step), compensation)
+        return check_times(t0, t1, VIState(self.method_init(step), compensation))
 
     def step(
         self,
@@ -300,7 +317,7 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         )
         out = self.method_step(step, solver_state.method, made_jump)
         y1, compensation = compensated_add(y0, (out.dq, out.dp), compensation)
-        result = step_result(out.result, y1)
+        y1, result = step_result(out.result, y1)
         dense_info = hermite_dense_info(step, y0, y1, out.v)
         return y1, None, dense_info, VIState(out.state, compensation), result
 

@@ -1,24 +1,44 @@
 r"""One-step implicit variational integrators: a method is its stage equations.
 
 A subclass says what its unknowns are (the step velocity of a discrete Lagrangian, the
-stage velocities of a VPRK method), the equations they satisfy, and the increments of
-$(q, p)$ they give. This class solves the equations, from a guess extrapolated from the
-last two steps' unknowns.
+stage velocities of a VPRK method), the equations they satisfy with the size of the
+momenta each equation balances, and the increments of $(q, p)$ they give. This module
+checks the Lagrangian at the start, solves the equations from a guess extrapolated
+from the last two steps, and checks that the root found continues the motion.
 """
 
 import abc
 
 import diffrax as dfx
 import equinox as eqx
+import jax
+import jax.flatten_util
+import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import lineax as lx
 import optimistix as optx
 from equinox import AbstractVar
-from jaxtyping import ArrayLike, Bool, PyTree
+from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._custom_types import P, Q, V
-from .._misc import all_finite, momentum_scale, sum_is_finite
-from .._nonlinear import solve_implicit
+from .._lagrangian import (
+    AbstractSeparableLagrangian,
+    broadcast_mass,
+    mass_regular,
+    momentum,
+)
+from .._misc import all_finite, sum_is_finite
+from .._nonlinear import (
+    AbstractVIRootFinder,
+    FixedPoint,
+    Newton,
+    singular_threshold,
+    solve,
+    symmetric_extremes,
+    tree_size,
+)
+from .._private_api import unvmap_any
 from .base import (
     AbstractSymmetricSolver,
     AbstractSymplecticSolver,
@@ -28,24 +48,86 @@ from .base import (
 )
 
 
+class Start(eqx.Module):
+    """What the start tells about the Lagrangian: the velocity there (NaN if the
+    Legendre map could not be inverted), why not (`result`), and whether
+    $\\partial^2 L/\\partial v^2$ is positive definite (then every step's root must
+    keep the Newton matrix positive along the way from its guess)."""
+
+    v0: V
+    result: dfx.RESULTS
+    positive: Bool[Array, ""]
+
+
+def check_start(step: StepInputs) -> Start:
+    """Invert the Legendre map at the start and check the Lagrangian there: that
+    $\\partial^2 L/\\partial v^2$ is invertible to working precision (its extreme
+    eigenvalues: dense up to 64 degrees of freedom, Lanczos beyond; the masses of a
+    separable Lagrangian). (`velocity` checks that one marked quadratic keeps its
+    promise.)"""
+    lagrangian, t, q, p, args = (
+        step.term.lagrangian,
+        step.t0,
+        step.q0,
+        step.p0,
+        step.args,
+    )
+    (v0, _), result = step.term.hamilton(t, (q, p), args)
+    n = tree_size(p)
+    if isinstance(lagrangian, AbstractSeparableLagrangian):
+        mass = broadcast_mass(lagrangian.mass, p)
+        regular = mass_regular(mass, p)
+        positive = jnp.all(jnp.stack([jnp.all(m > 0) for m in jtu.tree_leaves(mass)]))
+    else:
+        flat_v, unravel = jax.flatten_util.ravel_pytree(v0)
+
+        def hessian_vector(u):
+            grad = lambda w: jax.flatten_util.ravel_pytree(
+                momentum(lagrangian, t, q, unravel(w), args)
+            )[0]
+            return jax.jvp(grad, (flat_v,), (u,))[1]
+
+        smallest, largest, least = symmetric_extremes(hessian_vector, n, flat_v.dtype)
+        size = jnp.maximum(jnp.abs(smallest), jnp.abs(largest))
+        regular = least > singular_threshold(n, flat_v.dtype) * size
+        positive = smallest > 0
+    ok = result == dfx.RESULTS.successful
+    result = dfx.RESULTS.where(
+        ok & ~regular & all_finite(v0), dfx.RESULTS.singular, result
+    )
+    ok = result == dfx.RESULTS.successful
+    v0 = jtu.tree_map(lambda v: jnp.where(ok, v, jnp.nan), v0)
+    return Start(v0, result, positive)
+
+
 class Unknowns(eqx.Module):
     """The unknowns of the last two steps, `last` and `before_last`: the next step's
-    Newton guess is their second-order extrapolation `2 last - before_last`."""
+    guess is their second-order extrapolation `2 last - before_last`. Also what the
+    root finder hands from one step to the next (a factorisation), and whether the
+    Newton matrix must stay positive definite (`Start.positive`)."""
 
     last: PyTree
     before_last: PyTree
+    carry: PyTree
+    positive: Bool[Array, ""]
 
 
-def init_unknowns(step: StepInputs, stage_guess) -> Unknowns:
-    """The state of an implicit method before its first step: the unknowns of a step
-    at the start's velocity, `stage_guess(v0)`."""
-    (v0, _), result = step.term.hamilton(step.t0, (step.q0, step.p0), step.args)
-    # A Legendre map that cannot be inverted at the start leaves a NaN guess, which the
-    # first step reports as `RESULTS.singular`.
-    ok = result == dfx.RESULTS.successful
-    v0 = jtu.tree_map(lambda v: jnp.where(ok, v, jnp.nan), v0)
-    guess = stage_guess(v0)
-    return Unknowns(guess, guess)
+def init_unknowns(step: StepInputs, stage_guess, root_finder) -> Unknowns:
+    """The state of an implicit method before its first step."""
+    start = check_start(step)
+    guess = stage_guess(start.v0)
+    carry = (
+        root_finder.carry_init(guess)
+        if isinstance(root_finder, AbstractVIRootFinder)
+        else None
+    )
+    return Unknowns(guess, guess, carry, start.positive)
+
+
+def _curvature(residual, w, d) -> Array:
+    """`d . J(w) d` for the Jacobian `J` of `residual` at `w`."""
+    _, jd = jax.jvp(lambda x: residual(x)[0], (w,), (d,))
+    return sum(jnp.sum(a * b) for a, b in zip(jtu.tree_leaves(d), jtu.tree_leaves(jd)))
 
 
 def solve_step(
@@ -56,36 +138,85 @@ def solve_step(
     increments,
     root_finder: optx.AbstractRootFinder | None,
     max_steps: int,
+    inverse_mass: PyTree | None,
+    tags: frozenset,
 ) -> MethodStep:
-    """One implicit step: solve `residual(unknowns) = 0` from the extrapolated guess,
-    and take the step's `increments(unknowns)`."""
+    """One implicit step: solve `residual(w) = 0` (with `residual` returning the
+    residual and the size of its terms) from the extrapolated guess, check the root,
+    and take the step's `increments(w)`.
+
+    `root_finder=None` chooses: for a separable Lagrangian (`inverse_mass` given),
+    the fixed-point iteration, falling back to Newton's method from the same guess
+    where it does not contract (stiff steps); else Newton's method."""
     # Second-order extrapolation; after a jump only the last step is trusted.
     guess = jtu.tree_map(
         lambda a, b: jnp.where(made_jump, a, 2 * a - b), state.last, state.before_last
     )
-    # The residuals are momenta: divided by `1 + max|p0|`, Newton's absolute tolerance
-    # becomes relative to the size of the momentum.
-    scale = momentum_scale(step.p0)
-    unknowns, result = solve_implicit(
-        lambda w: jtu.tree_map(lambda r: r / scale, residual(w)),
+    newton = lambda: solve(
+        residual,
         guess,
-        root_finder,
+        Newton(),
         max_steps,
+        preconditioner=inverse_mass,
+        tags=tags,
     )
+    if root_finder is not None:
+        solved = solve(
+            residual,
+            guess,
+            root_finder,
+            max_steps,
+            preconditioner=inverse_mass,
+            tags=tags,
+            carry=state.carry,
+        )
+        checked = not isinstance(root_finder, FixedPoint)
+    elif inverse_mass is not None:
+        fixed = solve(
+            residual,
+            guess,
+            FixedPoint(),
+            3 * max_steps,
+            preconditioner=inverse_mass,
+        )
+        failed = fixed.result != dfx.RESULTS.successful
+        solved = lax.cond(unvmap_any(failed), newton, lambda: fixed)
+        checked = True
+    else:
+        solved = newton()
+        checked = True
+    unknowns = solved.value
+    result = solved.result
+    if checked:
+        # The root must continue the motion: along the way from the guess the Newton
+        # matrix keeps the positive curvature that d2L/dv2 has as h -> 0. A root
+        # across a fold (the bound pendulum at h = 5 lands on an energy of 82) has
+        # the opposite. The fixed-point iteration certifies this by converging.
+        d = jtu.tree_map(lambda a, b: a - b, unknowns, guess)
+        spurious = state.positive & (_curvature(residual, unknowns, d) < 0)
+        result = dfx.RESULTS.where(
+            (result == dfx.RESULTS.successful) & spurious,
+            dfx.RESULTS.nonlinear_divergence,
+            result,
+        )
     dq, dp = increments(unknowns)
-    v = jtu.tree_map(lambda x: x / step.h, dq)
     result = start_result(step, all_finite(state.last), result)
-    return MethodStep(dq, dp, v, Unknowns(unknowns, state.last), result)
+    v = jtu.tree_map(lambda x: x / step.h, dq)
+    new = Unknowns(unknowns, state.last, solved.carry, state.positive)
+    return MethodStep(dq, dp, v, new, result)
 
 
 def start_result(
     step: StepInputs, state_ok: Bool[ArrayLike, ""], result: dfx.RESULTS
 ) -> dfx.RESULTS:
-    """`RESULTS.nonfinite` for a NaN or inf start; else `RESULTS.singular` if the
-    method's state was poisoned (the Legendre map could not be inverted where it was
-    built); else `result`."""
+    """`RESULTS.nonfinite` for a NaN or inf start; else, if the method's state was
+    poisoned where it was built (the Legendre map could not be inverted, or
+    d2L/dv2 is singular), why; else `result`."""
+    failed = unvmap_any(~state_ok | (result != dfx.RESULTS.successful))
+    start_ok = lax.cond(
+        failed, lambda: sum_is_finite((step.q0, step.p0)), lambda: jnp.array(True)
+    )
     result = dfx.RESULTS.where(state_ok, result, dfx.RESULTS.singular)
-    start_ok = sum_is_finite((step.q0, step.p0))
     return dfx.RESULTS.where(start_ok, result, dfx.RESULTS.nonfinite)
 
 
@@ -96,7 +227,8 @@ class AbstractImplicitVI(
     [`diffrax_vi.LagrangianTerm`][]: symmetric and symplectic, one nonlinear solve per
     step for the method's unknowns.
 
-    A subclass implements `stage_guess`, `stage_residual` and `stage_increments`.
+    A subclass implements `stage_guess`, `stage_residual`, `stage_increments`,
+    `inverse_mass` and `jacobian_tags`.
     """
 
     root_finder: AbstractVar[optx.AbstractRootFinder | None]
@@ -107,15 +239,30 @@ class AbstractImplicitVI(
         """The unknowns of a step at the constant velocity `v`: the first guess."""
 
     @abc.abstractmethod
-    def stage_residual(self, step: StepInputs, unknowns: PyTree) -> PyTree:
-        """The step's equations, in units of momentum: zero at the solution."""
+    def stage_residual(
+        self, step: StepInputs, unknowns: PyTree
+    ) -> tuple[PyTree, PyTree]:
+        """The step's equations (momenta, zero at the solution) and the size of the
+        momenta each balances."""
 
     @abc.abstractmethod
     def stage_increments(self, step: StepInputs, unknowns: PyTree) -> tuple[Q, P]:
         """The increments `(q1 - q0, p1 - p0)` of the step with these unknowns."""
 
+    @abc.abstractmethod
+    def inverse_mass(self, step: StepInputs) -> PyTree | None:
+        """One over the mass of each unknown for a separable Lagrangian (the
+        fixed-point iteration's preconditioner), or `None`."""
+
+    @abc.abstractmethod
+    def jacobian_tags(self, step: StepInputs) -> frozenset:
+        """`lineax` tags of the stage equations' Jacobian (e.g. symmetric positive
+        definite for the midpoint step of a separable Lagrangian)."""
+
     def method_init(self, step: StepInputs) -> Unknowns:
-        return init_unknowns(step, lambda v: self.stage_guess(step, v))
+        return init_unknowns(
+            step, lambda v: self.stage_guess(step, v), self.root_finder
+        )
 
     def method_step(
         self, step: StepInputs, state: Unknowns, made_jump: Bool[ArrayLike, ""]
@@ -128,13 +275,22 @@ class AbstractImplicitVI(
             lambda w: self.stage_increments(step, w),
             self.root_finder,
             self.root_find_max_steps,
+            self.inverse_mass(step),
+            self.jacobian_tags(step),
         )
 
 
-IMPLICIT_ARGS_DOC = """- `root_finder`: an `optimistix.AbstractRootFinder` for the
-    implicit step. Defaults to `optimistix.Newton` with `rtol = atol = sqrt(eps)` of
-    the state's dtype: with Newton's quadratic convergence this leaves the solve's
-    error at round-off in float32 and float64 alike.
+SYMMETRIC_POSITIVE = frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag})
+
+
+IMPLICIT_ARGS_DOC = """- `root_finder`: how the implicit equations are solved: `None`
+    (the default) chooses the fixed-point iteration for a separable Lagrangian, falling
+    back to Newton's method where it does not converge (stiff steps), and Newton's
+    method otherwise, with dense LU up to 64 unknowns and matrix-free Krylov
+    iterations beyond; or [`diffrax_vi.Newton`][], [`diffrax_vi.SimplifiedNewton`][],
+    [`diffrax_vi.FixedPoint`][], or any `optimistix.AbstractRootFinder` (given the
+    residual relative to its largest term). Every tolerance is relative to the size
+    of the momenta the equations balance, so results do not depend on the units.
 - `root_find_max_steps`: iterations after which a step is reported as failed
     (`RESULTS.nonlinear_max_steps_reached`): usually a sign that the step is too large.
 - `compensated`: compensated (Kahan) summation of each step's increment (default),

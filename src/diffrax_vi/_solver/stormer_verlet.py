@@ -9,11 +9,12 @@ import jax.tree_util as jtu
 from jaxtyping import ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, P, Q, RealScalarLike
-from .._misc import all_finite, sum_is_finite
+from .._misc import all_finite, split_state, sum_is_finite
 from .._private_api import unvmap_any
 from .base import (
     AbstractSymmetricSolver,
     AbstractSymplecticSolver,
+    check_times,
     compensated_add,
     initial_compensation,
     step_control,
@@ -122,8 +123,10 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractSymmetricSolver):
         args: Args,
     ) -> VerletState:
         _, term_p = terms
-        force = poisoned_force(term_p.vf(t0, y0[0], args), y0)
-        return VerletState(force, initial_compensation(y0, self.compensated))
+        q0, p0 = split_state(y0)
+        force = poisoned_force(term_p.vf(t0, q0, args), y0)
+        state = VerletState(force, initial_compensation(y0, self.compensated))
+        return check_times(t0, t1, state)
 
     def step(
         self,

@@ -1,14 +1,16 @@
 import diffrax as dfx
+import equinox as eqx
 import jax
 import jax.tree_util as jtu
 import optimistix as optx
-from jaxtyping import ArrayLike, Bool, PyTree
+from jaxtyping import Array, ArrayLike, Bool, PyTree
 
-from .._discrete import legendre_increments, legendre_residual, TrapezoidalRule
+from .._discrete import step_increments, step_residual, TrapezoidalRule
 from .._lagrangian import (
     AbstractSeparableLagrangian,
     broadcast_mass,
     generalised_force,
+    mass_regular,
 )
 from .._private_api import unvmap_any
 from .base import (
@@ -72,10 +74,13 @@ class TrapezoidalVI(
         return 2
 
     def method_init(self, step: StepInputs) -> PyTree:
-        if isinstance(step.term.lagrangian, AbstractSeparableLagrangian):
+        lagrangian = step.term.lagrangian
+        if isinstance(lagrangian, AbstractSeparableLagrangian):
             y0 = (step.q0, step.p0)
-            return poisoned_force(_force(step, step.t0, step.q0), y0)
-        return init_unknowns(step, lambda v: v)
+            force = poisoned_force(_force(step, step.t0, step.q0), y0)
+            mass = broadcast_mass(lagrangian.mass, step.p0)
+            return ExplicitState(force, mass_regular(mass, step.p0))
+        return init_unknowns(step, lambda v: v, self.root_finder)
 
     def method_step(
         self, step: StepInputs, state: PyTree, made_jump: Bool[ArrayLike, ""]
@@ -88,22 +93,26 @@ class TrapezoidalVI(
             step,
             state,
             made_jump,
-            lambda v: legendre_residual(
+            lambda v: step_residual(
                 _RULE, lagrangian, step.t0, step.h, step.q0, step.p0, v, step.args
             ),
-            lambda v: legendre_increments(
+            lambda v: step_increments(
                 _RULE, lagrangian, step.t0, step.h, step.q0, v, step.args
             ),
             self.root_finder,
             self.root_find_max_steps,
+            None,
+            frozenset(),
         )
 
-    def _explicit_step(self, step: StepInputs, force0, made_jump) -> MethodStep:
+    def _explicit_step(
+        self, step: StepInputs, state: "ExplicitState", made_jump
+    ) -> MethodStep:
         # After a jump the cached force belongs to the state before the jump.
         force0 = jax.lax.cond(
             unvmap_any(made_jump),
             lambda: poisoned_force(_force(step, step.t0, step.q0), (step.q0, step.p0)),
-            lambda: force0,
+            lambda: state.force,
         )
         h = step.h
         mass = broadcast_mass(step.term.lagrangian.mass, step.p0)
@@ -118,7 +127,18 @@ class TrapezoidalVI(
         dp = jtu.tree_map(lambda a, b: a + b, kick0, kick1)
         v = jtu.tree_map(lambda x: x / h, dq)
         # The engine checks the new state for NaN and inf.
-        return MethodStep(dq, dp, v, force1, dfx.RESULTS.successful)
+        result = dfx.RESULTS.where(
+            state.regular, dfx.RESULTS.successful, dfx.RESULTS.singular
+        )
+        return MethodStep(dq, dp, v, ExplicitState(force1, state.regular), result)
+
+
+class ExplicitState(eqx.Module):
+    """The force at the end of the last step (the first kick of the next one), and
+    whether the mass is invertible (checked once, at the start)."""
+
+    force: PyTree
+    regular: Bool[Array, ""]
 
 
 TrapezoidalVI.__init__.__doc__ = "**Arguments:**\n\n" + IMPLICIT_ARGS_DOC

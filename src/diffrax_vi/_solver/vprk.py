@@ -28,9 +28,13 @@ from equinox import AbstractVar
 from jaxtyping import PyTree
 
 from .._custom_types import P, Q, V
-from .._lagrangian import lagrangian_value
+from .._lagrangian import (
+    AbstractSeparableLagrangian,
+    broadcast_mass,
+    lagrangian_value,
+)
 from .base import StepInputs
-from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC
+from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC, SYMMETRIC_POSITIVE
 
 
 # Past this many stages the construction below is not checked to round-off, and the
@@ -230,12 +234,45 @@ class AbstractVPRK(AbstractImplicitVI):
         )
         return jax.vmap(grad)(stage_ts, stage_q, stage_v)
 
-    def stage_residual(self, step: StepInputs, stage_v: PyTree) -> PyTree:
+    def stage_residual(
+        self, step: StepInputs, stage_v: PyTree
+    ) -> tuple[PyTree, PyTree]:
         dl_dq, dl_dv = self._stage_grads(step, stage_v)
-        kicks = _combine(self.tableau.a_bar, dl_dq)
-        return jtu.tree_map(
+        a_bar = self.tableau.a_bar
+        kicks = _combine(a_bar, dl_dq)
+        kick_sizes = _combine(np.abs(a_bar), jtu.tree_map(jnp.abs, dl_dq))
+        r = jtu.tree_map(
             lambda pv, p, k: pv - p[None] - step.h * k, dl_dv, step.p0, kicks
         )
+        s = jtu.tree_map(
+            lambda pv, p, k: jnp.abs(pv) + jnp.abs(p[None]) + jnp.abs(step.h) * k,
+            dl_dv,
+            step.p0,
+            kick_sizes,
+        )
+        return r, s
+
+    def inverse_mass(self, step: StepInputs) -> PyTree | None:
+        lagrangian = step.term.lagrangian
+        if not isinstance(lagrangian, AbstractSeparableLagrangian):
+            return None
+        s = self.tableau.stages
+        mass = broadcast_mass(lagrangian.mass, step.p0)
+        return jtu.tree_map(
+            lambda m, p: jnp.broadcast_to(1 / jnp.abs(m), (s, *jnp.shape(p))).astype(
+                p.dtype
+            ),
+            mass,
+            step.p0,
+        )
+
+    def jacobian_tags(self, step: StepInputs) -> frozenset:
+        # One stage of a separable Lagrangian: J = M - (h^2/4) d2L/dq2, symmetric, and
+        # positive definite for steps that resolve the motion.
+        separable = isinstance(step.term.lagrangian, AbstractSeparableLagrangian)
+        if separable and self.tableau.stages == 1:
+            return SYMMETRIC_POSITIVE
+        return frozenset()
 
     def stage_increments(self, step: StepInputs, stage_v: PyTree) -> tuple[Q, P]:
         dl_dq, _ = self._stage_grads(step, stage_v)

@@ -3,11 +3,20 @@ import pathlib
 from collections.abc import Sequence
 
 import diffrax as dfx
+import jax
 import jax.numpy as jnp
 import jax.random as jr
 import numpy as np
 
+from .._solver import AbstractSymplecticSolver
 from ..scenes import Scene
+from ._checks import (
+    ensemble_fits,
+    non_empty,
+    positive,
+    positive_int,
+    step_count,
+)
 from ._methods import as_method, Method
 from ._run import cast_scene, run, shard_ensemble
 from ._table import markdown_table, write_records
@@ -36,6 +45,7 @@ class DriftRun:
     result: str
     ts: np.ndarray
     errors: dict[str, np.ndarray]
+    symplectic: bool = False
 
     def max_error(self, name: str) -> float:
         return float(np.max(self.errors[name]))
@@ -55,7 +65,10 @@ class DriftRun:
 @dataclasses.dataclass(frozen=True)
 class DriftStudy:
     """The result of [`diffrax_vi.study.drift`][]: one
-    [`diffrax_vi.study.DriftRun`][] per method."""
+    [`diffrax_vi.study.DriftRun`][] per method, and `step`, the fixed step actually
+    taken (`periods * period / (periods * steps_per_period)`).
+
+    `verdict()` says in one line what the numbers show."""
 
     scene: str
     periods: int | float
@@ -63,6 +76,7 @@ class DriftStudy:
     dtype: str
     members: int
     runs: list[DriftRun]
+    step: float = float("nan")
 
     @property
     def invariants(self) -> list[str]:
@@ -87,6 +101,41 @@ class DriftStudy:
         """The summary as a Markdown table."""
         return markdown_table(self.rows())
 
+    def verdict(self) -> str:
+        """One line computed from the table: the run with the lowest energy error, the
+        one with the lowest energy error times wall time (the best error for the
+        work), and how the errors of the non-symplectic runs grow from the first to
+        the last tenth of the horizon against those of the symplectic runs."""
+        ok = [r for r in self.runs if r.result == "successful"]
+        if not ok:
+            return "Verdict: every run failed (see the result column)."
+
+        def said(r):
+            return f"{r.solver} ({r.max_error('energy'):.1e} in {r.wall_time:.2f} s)"
+
+        best = min(ok, key=lambda r: r.max_error("energy"))
+        thrifty = min(ok, key=lambda r: r.max_error("energy") * max(r.wall_time, 1e-6))
+        parts = [f"lowest energy error: {said(best)}"]
+        if thrifty is not best:
+            parts.append(f"best error for the time: {said(thrifty)}")
+
+        def growth(runs):
+            values = [r.growth("energy") for r in runs]
+            low, high = min(values), max(values)
+            return f"x{low:.2g}" if high < 1.5 * low else f"x{low:.2g} to x{high:.2g}"
+
+        others = [r for r in ok if not r.symplectic]
+        geometric = [r for r in ok if r.symplectic]
+        if others:
+            phrase = f"non-symplectic energy errors grow {growth(others)}"
+            if geometric:
+                phrase += f", symplectic ones {growth(geometric)}"
+            parts.append(phrase + " from the first to the last tenth of the horizon")
+        failed = len(self.runs) - len(ok)
+        if failed:
+            parts.append(f"{failed} run(s) failed")
+        return "Verdict: " + "; ".join(parts) + "."
+
     def write(self, out: str | pathlib.Path) -> list[pathlib.Path]:
         """Write `drift.csv` (summary), `drift.json` (summary and series) and, if
         matplotlib is installed, `drift_<invariant>.png` into the folder `out`."""
@@ -98,6 +147,8 @@ class DriftStudy:
             scene=self.scene,
             periods=self.periods,
             steps_per_period=self.steps_per_period,
+            step=self.step,
+            fixed_steps=round(self.periods * self.steps_per_period),
             dtype=self.dtype,
             members=self.members,
             series={
@@ -115,6 +166,31 @@ class DriftStudy:
         for name in self.invariants:
             written.append(plot_drift(self, name, out / f"drift_{name}.png"))
         return written
+
+
+def check_drift(
+    scene: Scene,
+    periods: int | float,
+    steps_per_period: int | float,
+    n_save: int | float,
+    dtype,
+    ensemble: int | float | None = None,
+) -> int:
+    """Check a drift study's settings before any work (see
+    [`diffrax_vi.study.drift`][]'s **Raises**); returns the number of fixed steps."""
+    n_steps = step_count(periods, steps_per_period)
+    if isinstance(n_save, bool) or int(n_save) != n_save or n_steps % n_save:
+        raise ValueError(
+            f"n_save={n_save} must divide the number of steps {n_steps} "
+            f"({periods:g} periods x {steps_per_period}) so that the invariants are "
+            "saved on step boundaries."
+        )
+    if ensemble is not None:
+        positive_int("ensemble", ensemble)
+        state = sum(jnp.size(x) for x in jax.tree.leaves(scene.y0))
+        recorded = (n_save + 1) * len(scene.conserved())
+        ensemble_fits(ensemble, jnp.dtype(dtype).itemsize * (recorded + 32 * state))
+    return n_steps
 
 
 def drift(
@@ -171,16 +247,16 @@ def drift(
 
     **Raises:**
 
-    `ValueError` for unknown solver names, an `n_save` that does not divide the
-    number of steps, or an ensemble that cannot be split evenly across the devices.
+    `ValueError`, before any work, for no solvers or unknown solver names, a
+    horizon or step count that is not positive and finite, `periods *
+    steps_per_period` that is not a whole number of steps, an `n_save` that does not
+    divide the number of steps, an ensemble size that is not a positive integer, or
+    an ensemble that cannot be split evenly across the devices.
     """
-    methods = [as_method(spec, rtol) for spec in solvers]
-    n_steps = int(round(periods * steps_per_period))
-    if n_save < 1 or n_steps % n_save != 0:
-        raise ValueError(
-            f"n_save={n_save} must divide the number of steps {n_steps} so that the "
-            "invariants are saved on step boundaries."
-        )
+    methods = [as_method(spec, rtol) for spec in non_empty("solvers", solvers)]
+    n_steps = check_drift(scene, periods, steps_per_period, n_save, dtype, ensemble)
+    if ensemble is not None and spread != 0:
+        positive("spread", spread)
     scene = cast_scene(scene, dtype)
     t1 = scene.period * periods
     if ensemble is None:
@@ -210,6 +286,8 @@ def drift(
                 result=outcome.result,
                 ts=np.linspace(0, t1, n_save + 1),
                 errors=outcome.errors(),
+                symplectic=method.rtol is None
+                and isinstance(method.solver, AbstractSymplecticSolver),
             )
         )
     return DriftStudy(
@@ -219,4 +297,5 @@ def drift(
         dtype=jnp.dtype(dtype).name,
         members=1 if ensemble is None else ensemble,
         runs=runs,
+        step=float(t1 / n_steps),
     )

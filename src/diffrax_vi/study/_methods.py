@@ -13,6 +13,7 @@ from .._solver import (
 )
 from .._term import terms_for
 from ..scenes import Scene
+from ._checks import tolerance
 
 
 # Name -> a function making the solver.
@@ -78,10 +79,10 @@ def as_method(spec: "str | dfx.AbstractSolver | Method", rtol: float = 1e-8) -> 
     `PIDController` at tolerance `rtol`), a solver instance (fixed steps) or a
     [`diffrax_vi.study.Method`][].
 
-    **Raises:** `ValueError` for an unknown name, or `+PID` on a solver without an
-    error estimate (our variational solvers take fixed steps; wrap one in
-    `diffrax.HalfSolver` yourself to step it adaptively, at the price of
-    symplecticity).
+    **Raises:** `ValueError` for an unknown name, an `rtol` outside (0, 1), or
+    `+PID` on a solver without an error estimate (our variational solvers take
+    fixed steps; wrap one in `diffrax.HalfSolver` yourself to step it adaptively, at
+    the price of symplecticity).
     """
     if isinstance(spec, Method):
         return spec
@@ -102,4 +103,4 @@ def as_method(spec: "str | dfx.AbstractSolver | Method", rtol: float = 1e-8) -> 
             )
             + "."
         )
-    return Method(spec, solver, rtol)
+    return Method(spec, solver, tolerance(rtol))

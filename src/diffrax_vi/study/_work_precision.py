@@ -11,6 +11,7 @@ from jaxtyping import Array, PyTree
 
 from .._term import LagrangianTerm
 from ..scenes import Scene
+from ._checks import non_empty, step_count, tolerance
 from ._methods import as_method, Method
 from ._run import cast_scene, run
 from ._table import markdown_table, write_records
@@ -96,19 +97,24 @@ def work_precision(
     at the end of the horizon to measure the global error against (default:
     [`diffrax_vi.study.reference_state`][]; pass it to reuse one across calls).
     """
+    solvers = non_empty("solvers", solvers)
+    methods = [as_method(spec) for spec in solvers]
+    steps_per_period = non_empty("steps_per_period", steps_per_period)
+    grid = {spp: step_count(periods, spp) for spp in steps_per_period}
+    if any(m.rtol is not None for m in methods):
+        rtols = [tolerance(r) for r in non_empty("rtols", rtols)]
     t1 = scene.period * periods
     if reference is None:
         reference = reference_state(scene, t1)
     exact = jax.tree.map(np.asarray, reference)
     scene = cast_scene(scene, dtype)
     records = []
-    for spec in solvers:
-        base = as_method(spec)
+    for base in methods:
         adaptive = base.rtol is not None
         for setting in rtols if adaptive else steps_per_period:
             method = dataclasses.replace(base, rtol=setting) if adaptive else base
             spp = steps_per_period[0] if adaptive else setting
-            n_steps = int(round(periods * spp))
+            n_steps = grid[spp]
             outcome = run(
                 scene,
                 method,

@@ -1,0 +1,228 @@
+"""No silent wrong answers: every guard fires on the case it exists for, at two unit
+scalings, and stays quiet on the same healthy physics in either units."""
+
+import diffrax as dfx
+import diffrax_vi as dvi
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+
+# Mass scalings: the same physics with every momentum and energy multiplied by c.
+UNITS = [1.0, 1e-6]
+ONE_STEP = [
+    ("MidpointVI", dvi.MidpointVI()),
+    ("TrapezoidalVI", dvi.TrapezoidalVI()),
+    ("GaussVPRK(2)", dvi.GaussVPRK(2)),
+]
+ALL = ONE_STEP + [("LinearizedVI", dvi.LinearizedVI(velocity="centered"))]
+
+
+def _solve(lagrangian, solver, y0, *, t1=1.0, dt=0.1, **kwargs):
+    return dfx.diffeqsolve(
+        dvi.terms_for(solver, lagrangian), solver, 0.0, t1, dt, y0, **kwargs
+    )
+
+
+class Kepler(dvi.AbstractLagrangian):
+    """Kepler's problem for a body of mass `m` (`mu = 1`)."""
+
+    m: float
+
+    def __call__(self, t, q, v, args):
+        return self.m * (0.5 * jnp.sum(v**2) + 1 / jnp.sqrt(jnp.sum(q**2)))
+
+
+class Pendulum(dvi.AbstractLagrangian):
+    """A pendulum of unit mass and length under gravity `g`: `g -> g / s^2` with
+    `h -> s h` is the same motion in other units of time."""
+
+    g: float
+
+    def __call__(self, t, q, v, args):
+        return 0.5 * v**2 + self.g * jnp.cos(q)
+
+
+class Relativistic(dvi.AbstractLagrangian):
+    """A relativistic particle in a harmonic well: |v| < 1, not quadratic in v."""
+
+    def __call__(self, t, q, v, args):
+        return -jnp.sqrt(1 - v**2) - 0.5 * q**2
+
+
+class FalselyQuadratic(dvi.AbstractQuadraticLagrangian):
+    def __call__(self, t, q, v, args):
+        return -jnp.sqrt(1 - v**2) - 0.5 * q**2
+
+
+@pytest.mark.parametrize("c", UNITS)
+@pytest.mark.parametrize("name,solver", ALL)
+def test_velocity_entering_linearly_is_singular(name, solver, c):
+    """L = q v - q^2 / 2 has dL/dv = q: no velocity is determined. From p0 on the
+    constraint p = q the equations are consistent, and still the step is not
+    determined: reported as singular, not stepped."""
+    degenerate = dvi.Lagrangian(lambda t, q, v, args: c * (q * v - 0.5 * q**2))
+    y0 = (jnp.array(0.5), jnp.array(0.5 * c))
+    sol = _solve(degenerate, solver, y0, throw=False)
+    assert sol.result == dfx.RESULTS.singular
+
+
+@pytest.mark.parametrize("c", UNITS)
+def test_one_degenerate_direction_of_two_is_singular(c):
+    # The second velocity enters linearly; the first is a regular oscillator.
+    lagrangian = dvi.Lagrangian(
+        lambda t, q, v, args: c * (0.5 * v[0] ** 2 + q[1] * v[1] - 0.5 * jnp.sum(q**2))
+    )
+    y0 = (jnp.array([0.3, 0.5]), c * jnp.array([0.0, 0.5]))
+    for _, solver in ALL:
+        assert _solve(lagrangian, solver, y0, throw=False).result == (
+            dfx.RESULTS.singular
+        )
+    with pytest.raises(eqx.EquinoxRuntimeError, match="degenerate"):
+        dfx.diffeqsolve(dvi.LagrangianTerm(lagrangian), dfx.Tsit5(), 0.0, 1.0, 0.1, y0)
+
+
+@pytest.mark.parametrize("c", UNITS)
+def test_zero_mass_is_singular_and_a_small_one_is_not(c):
+    potential = lambda t, q, args: 0.5 * c * jnp.sum(q**2)
+    y0 = (jnp.array([0.3, 0.5]), jnp.zeros(2))
+    zero = dvi.SeparableLagrangian(potential, mass=c * jnp.array([1.0, 0.0]))
+    for solver in (dvi.TrapezoidalVI(), dvi.MidpointVI()):
+        assert _solve(zero, solver, y0, throw=False).result == dfx.RESULTS.singular
+    with pytest.raises(eqx.EquinoxRuntimeError, match="mass"):
+        _solve(zero, dvi.StormerVerlet(), y0)
+    # Every mass small (the same physics in units of c): nothing is singular.
+    small = dvi.SeparableLagrangian(potential, mass=c * jnp.ones(2))
+    for solver in (dvi.TrapezoidalVI(), dvi.StormerVerlet(), dvi.MidpointVI()):
+        sol = _solve(small, solver, y0, t1=np.pi, dt=np.pi / 200)
+        # Unit frequency: half a period later q = -q0.
+        assert np.allclose(sol.ys[0][-1], -y0[0], atol=1e-4)
+
+
+@pytest.mark.parametrize("c", [1.0, 1e-3])
+def test_linearized_guard_is_unit_free(c):
+    """Centered LinearizedVI on Kepler (e = 0.6, 200 steps per period) follows a
+    parasitic mode and explodes: unguarded it reports success; guarded it fails near
+    step 328 in any units of mass. A healthy run passes in either units."""
+    e = 0.6
+    y0 = (jnp.array([1 - e, 0.0]), c * jnp.array([0.0, np.sqrt((1 + e) / (1 - e))]))
+    kwargs = dict(t1=6 * np.pi, dt=2 * np.pi / 200, throw=False)
+    silent = _solve(
+        Kepler(c),
+        dvi.LinearizedVI(velocity="centered", max_del_residual=None),
+        y0,
+        max_steps=None,
+        **kwargs,
+    )
+    assert silent.result == dfx.RESULTS.successful
+    assert np.max(np.abs(silent.ys[0])) > 10  # far off the unit ellipse
+    guarded = _solve(Kepler(c), dvi.LinearizedVI(velocity="centered"), y0, **kwargs)
+    assert guarded.result == dfx.RESULTS.nonlinear_divergence
+    assert 250 < int(guarded.stats["num_accepted_steps"]) < 450
+    # e = 0: the circular orbit is healthy, in either units.
+    circle = (jnp.array([1.0, 0.0]), c * jnp.array([0.0, 1.0]))
+    healthy = _solve(Kepler(c), dvi.LinearizedVI(velocity="centered"), circle, **kwargs)
+    assert healthy.result == dfx.RESULTS.successful
+    assert abs(float(jnp.linalg.norm(healthy.ys[0][-1])) - 1) < 1e-3
+
+
+@pytest.mark.parametrize("s", [1.0, 1e3])
+def test_huge_step_does_not_land_on_a_spurious_root(s):
+    """The bound pendulum (energy -0.54) at h = 5: Newton can converge to a root
+    that puts it at energy 82. The root is reported as divergence, in any units of
+    time; the same method at h = 1 is fine."""
+    lagrangian = Pendulum(1.0 / s**2)
+    y0 = (jnp.array(1.0), jnp.array(0.5 / s))
+    energy = lambda y: float(dvi.energy(lagrangian, 0.0, y)) * s**2
+    for h, expected in (
+        (5.0, dfx.RESULTS.nonlinear_divergence),
+        (10.0, dfx.RESULTS.nonlinear_divergence),
+        (1.0, dfx.RESULTS.successful),
+    ):
+        sol = _solve(lagrangian, dvi.MidpointVI(), y0, t1=40 * s, dt=h * s, throw=False)
+        assert sol.result == expected, h
+        if expected == dfx.RESULTS.successful:
+            y1 = (sol.ys[0][-1], sol.ys[1][-1])
+            assert abs(energy(y1) - energy(y0)) < 0.05
+
+
+@pytest.mark.parametrize("bad", ["t1", "dt0"])
+@pytest.mark.parametrize("name,solver", ALL + [("StormerVerlet", dvi.StormerVerlet())])
+def test_nan_times_are_an_error(name, solver, bad):
+    lagrangian = dvi.SeparableLagrangian(lambda t, q, args: 0.5 * q**2)
+    times = dict(t1=1.0, dt0=0.1)
+    times[bad] = float("nan")
+    with pytest.raises(eqx.EquinoxRuntimeError, match="NaN or infinite"):
+        dfx.diffeqsolve(
+            dvi.terms_for(solver, lagrangian),
+            solver,
+            0.0,
+            times["t1"],
+            times["dt0"],
+            (jnp.array(1.0), jnp.array(0.0)),
+        )
+
+
+def test_relativistic_lagrangian_runs_in_every_solver():
+    """p0 = 3 is a velocity of 3 / sqrt(10) ~ 0.95, beyond what an undamped Newton
+    step from v = 0 reaches without leaving |v| < 1. Every solver (and the Legendre
+    inversion under Tsit5) keeps |v| < 1 and the energy."""
+    y0 = (jnp.array(0.0), jnp.array(3.0))
+    lagrangian = Relativistic()
+    energy = jax.vmap(lambda q, p: dvi.energy(lagrangian, 0.0, (q, p)))
+    velocity = jax.vmap(lambda q, p: dvi.velocity(lagrangian, 0.0, (q, p))[0])
+    e0 = float(energy(*(x[None] for x in y0))[0])
+    for solver in (
+        dvi.MidpointVI(),
+        dvi.TrapezoidalVI(),
+        dvi.GaussVPRK(2),
+        dvi.LinearizedVI(velocity="centered"),
+        dfx.Tsit5(),
+    ):
+        sol = _solve(
+            lagrangian,
+            solver,
+            y0,
+            t1=10.0,
+            dt=0.01,
+            saveat=dfx.SaveAt(ts=jnp.linspace(0.0, 10.0, 101)),
+        )
+        assert sol.result == dfx.RESULTS.successful
+        qs, ps = sol.ys
+        assert float(jnp.max(jnp.abs(velocity(qs, ps)))) < 1
+        assert float(jnp.max(jnp.abs(energy(qs, ps) - e0))) < 1e-3 * abs(e0)
+
+
+def test_false_quadratic_marker_is_caught():
+    y0 = (jnp.array(0.0), jnp.array(0.5))
+    for solver in (dvi.MidpointVI(), dfx.Tsit5()):
+        with pytest.raises(eqx.EquinoxRuntimeError, match="not quadratic"):
+            _solve(FalselyQuadratic(), solver, y0)
+    # The true quadratic passes the same check.
+    honest = dvi.SeparableLagrangian(lambda t, q, args: 0.5 * q**2)
+    assert _solve(honest, dvi.MidpointVI(), y0).result == dfx.RESULTS.successful
+
+
+def test_bad_states_are_value_errors():
+    lagrangian = dvi.SeparableLagrangian(lambda t, q, args: 0.5 * q**2)
+    half = lambda x: jnp.asarray(x, "float16")
+    with pytest.raises(ValueError, match="float16"):
+        # (With float64 times diffrax promotes the state, and the solve is fine.)
+        dfx.diffeqsolve(
+            dvi.LagrangianTerm(lagrangian),
+            dvi.MidpointVI(),
+            half(0.0),
+            half(1.0),
+            half(0.1),
+            (half(1.0), half(0.0)),
+        )
+    with pytest.raises(ValueError, match="tuple, not a list"):
+        _solve(lagrangian, dvi.MidpointVI(), [jnp.ones(()), jnp.ones(())])
+    with pytest.raises(ValueError, match="mass"):
+        dvi.velocity(
+            dvi.SeparableLagrangian(lambda t, q, args: 0.0, mass=jnp.ones(3)),
+            0.0,
+            (jnp.ones(2), jnp.ones(2)),
+        )
