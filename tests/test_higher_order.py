@@ -172,8 +172,8 @@ def test_composition_rejects_non_symmetric_base():
         dvi.StormerVerlet(),
         dvi.MidpointVI(),
         dvi.TrapezoidalVI(),
-        dvi.GaussVPRK(2),
-        dvi.LobattoVPRK(3),
+        pytest.param(dvi.GaussVPRK(2), marks=pytest.mark.slow),
+        pytest.param(dvi.LobattoVPRK(3), marks=pytest.mark.slow),
     ],
     ids=lambda base: type(base).__name__,
 )
@@ -201,7 +201,9 @@ def test_composition_substeps_do_not_round_with_t(base):
         dvi.GaussVPRK(3),
         dvi.LobattoVPRK(3),
         dvi.Composition(dvi.MidpointVI(), "yoshida4"),
-        dvi.Composition(dvi.TrapezoidalVI(), "kahan_li6"),
+        pytest.param(
+            dvi.Composition(dvi.TrapezoidalVI(), "kahan_li6"), marks=pytest.mark.slow
+        ),
     ],
     ids=["gauss2", "gauss3", "lobatto3", "midpoint-yoshida4", "trapezoidal-kahan_li6"],
 )

@@ -44,6 +44,20 @@ SOLVERS = {
 }
 
 
+# The default suite checks the one-stage and a two-stage method on the general
+# Lagrangian, and the explicit method on the separable one; the others run with
+# `-m slow` (their steps share the engine, and test_higher_order checks them).
+FAST = ("MidpointVI", "GaussVPRK(2)", "StormerVerlet")
+NAMES = [
+    name if name in FAST else pytest.param(name, marks=pytest.mark.slow)
+    for name in SOLVERS
+]
+VMAP_NAMES = [
+    name if name == "MidpointVI" else pytest.param(name, marks=pytest.mark.slow)
+    for name in SOLVERS
+]
+
+
 def _terms(solver, lagrangian):
     if isinstance(solver.term_structure, tuple):
         return dvi.separable_terms(lagrangian)
@@ -75,7 +89,7 @@ def _state(x):
     return jnp.asarray(x[:2]), jnp.asarray(x[2:])
 
 
-@pytest.mark.parametrize("name", SOLVERS)
+@pytest.mark.parametrize("name", NAMES)
 @SETTINGS
 @given(c=coefficients, x=states)
 def test_symplectic(name, c, x):
@@ -97,7 +111,7 @@ def _there_and_back(solver, lagrangian, y0, c):
     return jax.tree.map(lambda x: x[-1], back.ys), y1
 
 
-@pytest.mark.parametrize("name", SOLVERS)
+@pytest.mark.parametrize("name", NAMES)
 @SETTINGS
 @given(c=coefficients, x=states)
 def test_time_reversible(name, c, x):
@@ -117,7 +131,7 @@ def _final(solver, lagrangian, y0, c):
     return jax.tree.map(lambda x: x[-1], sol.ys)
 
 
-@pytest.mark.parametrize("name", SOLVERS)
+@pytest.mark.parametrize("name", VMAP_NAMES)
 @SETTINGS
 @given(
     c=coefficients,

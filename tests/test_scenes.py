@@ -121,6 +121,7 @@ def test_perturbed(getkey):
     assert 0.5e-2 < deviation / (1 + 0.4) < 2e-2
 
 
+@pytest.mark.slow
 def test_learned_lagrangian():
     """A small MLP potential trained through MidpointVI reproduces the pendulum on an
     amplitude it never saw, and, being a Lagrangian, keeps its own energy bounded."""

@@ -238,6 +238,7 @@ def _pendulum_error(solver, n):
     return max(abs(float(sol.ys[i][-1] - exact[i])) for i in (0, 1))
 
 
+@pytest.mark.slow
 def test_linearized_round_off_floor():
     """The linearized method differences positions: its error falls like h^2 down to
     h ~ 1e-4 (pendulum, T = 1), then round-off, amplified like 1/h^2 by the nearly

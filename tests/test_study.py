@@ -396,6 +396,7 @@ def test_sharded_ensemble_equals_unsharded():
     assert result.stdout.strip().endswith("ok")
 
 
+@pytest.mark.slow
 def test_seed_cli_reproduces_the_thesis_ratios(tmp_path):
     """`diffrax-vi seed`: the error ratios on halving the step from the thesis's
     analytic start are within 0.15 of 4, as in the thesis's Tables 5.1/5.2."""

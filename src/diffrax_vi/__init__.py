@@ -18,6 +18,11 @@ from ._lagrangian import (
     TangentLift as TangentLift,
     velocity as velocity,
 )
+from ._nonlinear import (
+    FixedPoint as FixedPoint,
+    Newton as Newton,
+    SimplifiedNewton as SimplifiedNewton,
+)
 from ._solver import (
     AbstractImplicitVI as AbstractImplicitVI,
     AbstractSymmetricSolver as AbstractSymmetricSolver,

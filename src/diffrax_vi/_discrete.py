@@ -25,7 +25,7 @@ import jax.tree_util as jtu
 import optimistix as optx
 
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
-from ._lagrangian import AbstractLagrangian, lagrangian_value
+from ._lagrangian import AbstractLagrangian, lagrangian_value, momentum_offset
 from ._misc import tree_axpy
 from ._nonlinear import solve
 
@@ -141,8 +141,14 @@ def step_residual(rule, lagrangian, t0, h, q0, p0, v, args) -> tuple[P, P]:
     $h \to 0$."""
     dq, dv = average_grads(rule, lagrangian, t0, h, q0, v, args)
     r = jtu.tree_map(lambda p, a, b: b - h * a - p, p0, dq, dv)
+    # (The offset depends on q0 alone: XLA hoists it out of the Newton loop.)
+    offset = momentum_offset(lagrangian, t0, q0, args)
     s = jtu.tree_map(
-        lambda p, a, b: jnp.abs(p) + jnp.abs(h * a) + jnp.abs(b), p0, dq, dv
+        lambda p, a, b, c: jnp.abs(p) + jnp.abs(h * a) + jnp.abs(b) + c,
+        p0,
+        dq,
+        dv,
+        offset,
     )
     return r, s
 

@@ -289,14 +289,26 @@ def mass_regular(mass: PyTree[ArrayLike], like: PyTree) -> Bool[Array, ""]:
     return jnp.isfinite(largest) & (smallest > threshold * largest)
 
 
+def momentum_offset(lagrangian: AbstractLagrangian, t, q: Q, args: Args) -> P:
+    """`|dL/dv(t, q, 0)|`, the size of the part of the momentum that does not
+    depend on the velocity (a magnetic or Coriolis term `A(q)` in `M v + A(q)`); zero
+    for a separable Lagrangian. A residual's scale includes it: the momentum can
+    vanish while its terms do not, and then only they say what round-off is."""
+    if isinstance(lagrangian, AbstractSeparableLagrangian):
+        return jtu.tree_map(jnp.zeros_like, q)
+    zeros = jtu.tree_map(jnp.zeros_like, q)
+    return jtu.tree_map(jnp.abs, momentum(lagrangian, t, q, zeros, args))
+
+
 def legendre_residual(lagrangian: AbstractLagrangian, t, q: Q, p: P, args: Args):
-    """`v -> (dL/dv(t, q, v) - p, |dL/dv| + |p|)`: the equation of the inverse
-    Legendre map and the size of the momenta it balances."""
+    """`v -> (dL/dv(t, q, v) - p, |dL/dv| + |p| + |dL/dv(0)|)`: the equation of the
+    inverse Legendre map and the size of the momenta it balances."""
+    offset = momentum_offset(lagrangian, t, q, args)
 
     def residual(v):
         dp = momentum(lagrangian, t, q, v, args)
         r = jtu.tree_map(lambda a, b: a - b, dp, p)
-        s = jtu.tree_map(lambda a, b: jnp.abs(a) + jnp.abs(b), dp, p)
+        s = jtu.tree_map(lambda a, b, c: jnp.abs(a) + jnp.abs(b) + c, dp, p, offset)
         return r, s
 
     return residual

@@ -52,11 +52,23 @@ def tree_dtype(tree: PyTree):
 
 
 def scaled_norm(f: PyTree, scale: PyTree) -> Scalar:
-    """`max |f| / s`, the dimensionless size of a residual (0 where `f = s = 0`)."""
-    ratios = [
-        jnp.max(jnp.abs(fi) / jnp.where(si > 0, si, 1), initial=0.0)
-        for fi, si in zip(jtu.tree_leaves(f), jtu.tree_leaves(scale))
-    ]
+    """`max |f| / s`, the dimensionless size of a residual (0 where `f = s = 0`).
+
+    Component by component, so that coordinates in different units are each measured
+    against their own terms; but never against less than `64 sqrt(eps)` of the largest
+    term: a component whose terms cancel (a momentum `p = M v + A(q)` that is zero
+    while `M v` is not) keeps the round-off of the others in its residual, which
+    its own vanishing scale must not magnify. Invariant under any common change of
+    units."""
+    leaves = jtu.tree_leaves(f)
+    scales = jtu.tree_leaves(scale)
+    eps = jnp.finfo(jnp.result_type(*leaves)).eps
+    peak = jnp.max(jnp.stack([jnp.max(si, initial=0.0) for si in scales]))
+    floor = 64 * jnp.sqrt(eps) * peak
+    ratios = []
+    for fi, si in zip(leaves, scales):
+        si = jnp.maximum(si, floor)
+        ratios.append(jnp.max(jnp.abs(fi) / jnp.where(si > 0, si, 1), initial=0.0))
     return jnp.max(jnp.stack(ratios))
 
 

@@ -140,6 +140,7 @@ def solve_step(
     max_steps: int,
     inverse_mass: PyTree | None,
     tags: frozenset,
+    one_stage: bool,
 ) -> MethodStep:
     """One implicit step: solve `residual(w) = 0` (with `residual` returning the
     residual and the size of its terms) from the extrapolated guess, check the root,
@@ -187,7 +188,7 @@ def solve_step(
         checked = True
     unknowns = solved.value
     result = solved.result
-    if checked:
+    if checked and one_stage:
         # The root must continue the motion: along the way from the guess the Newton
         # matrix keeps the positive curvature that d2L/dv2 has as h -> 0. A root
         # across a fold (the bound pendulum at h = 5 lands on an energy of 82) has
@@ -277,7 +278,18 @@ class AbstractImplicitVI(
             self.root_find_max_steps,
             self.inverse_mass(step),
             self.jacobian_tags(step),
+            self.one_stage,
         )
+
+    @property
+    def one_stage(self) -> bool:
+        """Whether the unknowns are one velocity, so that the Jacobian of the step's
+        equation is, up to an antisymmetric part, the Hessian of the discrete action
+        and its curvature along the Newton path tests the root. The stage equations
+        of a multi-stage method have no such structure: their Jacobian can be
+        indefinite at the one good root of a linear problem (Gauss and Lobatto
+        methods on the oscillator past their stability interval)."""
+        return False
 
 
 SYMMETRIC_POSITIVE = frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag})

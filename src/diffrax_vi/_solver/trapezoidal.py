@@ -103,6 +103,7 @@ class TrapezoidalVI(
             self.root_find_max_steps,
             None,
             frozenset(),
+            True,  # one velocity: the curvature of the discrete action tests the root
         )
 
     def _explicit_step(

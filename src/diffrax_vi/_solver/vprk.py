@@ -32,6 +32,7 @@ from .._lagrangian import (
     AbstractSeparableLagrangian,
     broadcast_mass,
     lagrangian_value,
+    momentum_offset,
 )
 from .base import StepInputs
 from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC, SYMMETRIC_POSITIVE
@@ -244,11 +245,15 @@ class AbstractVPRK(AbstractImplicitVI):
         r = jtu.tree_map(
             lambda pv, p, k: pv - p[None] - step.h * k, dl_dv, step.p0, kicks
         )
+        offset = momentum_offset(step.term.lagrangian, step.t0, step.q0, step.args)
         s = jtu.tree_map(
-            lambda pv, p, k: jnp.abs(pv) + jnp.abs(p[None]) + jnp.abs(step.h) * k,
+            lambda pv, p, k, c: (
+                jnp.abs(pv) + jnp.abs(p[None]) + jnp.abs(step.h) * k + c[None]
+            ),
             dl_dv,
             step.p0,
             kick_sizes,
+            offset,
         )
         return r, s
 
@@ -265,6 +270,10 @@ class AbstractVPRK(AbstractImplicitVI):
             mass,
             step.p0,
         )
+
+    @property
+    def one_stage(self) -> bool:
+        return self.tableau.stages == 1
 
     def jacobian_tags(self, step: StepInputs) -> frozenset:
         # One stage of a separable Lagrangian: J = M - (h^2/4) d2L/dq2, symmetric, and
