@@ -11,3 +11,36 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 def getkey():
     keys = iter(jax.random.split(jax.random.key(5678), 1000))
     return lambda: next(keys)
+
+
+# The default suite has 15 minutes on CI's two cores. These runs repeat, for one more
+# method or Lagrangian, a property the default suite already checks for another; they
+# run with `-m slow` (test ids, or their prefix before `[` ... `-`).
+SLOW = (
+    "test_seed.py::test_linearized_backward_vmap_grad",
+    "test_seed.py::test_theorem_1_midpoint_on_lift_is_tangent_of_flow[double-pendulum",
+    "test_seed.py::test_theorem_2_presymplectic_on_S[double-pendulum",
+    "test_higher_order.py::test_compensated_summation_brouwer",
+    "test_higher_order.py::test_composition_substeps_do_not_round_with_t[MidpointVI",
+    "test_higher_order.py::test_jit_vmap_grad[lobatto3",
+    "test_resume.py::test_resume_from_saved_state[yoshida4(MidpointVI)",
+    "test_resume.py::test_resume_from_saved_state[GaussVPRK(2)",
+    "test_resume.py::test_resume_from_saved_state[LinearizedVI-solver",
+    "test_resume.py::test_jump_discards_a_stale_state[yoshida4(MidpointVI)",
+    "test_resume.py::test_jump_discards_a_stale_state[GaussVPRK(2)",
+    "test_stability.py::test_float32_end_to_end[LinearizedVI",
+    "test_stability.py::test_float32_end_to_end[MidpointVI",
+    "test_stability.py::test_stability_limit[LinearizedVI(centered, trapezoidal)",
+    "test_stability.py::test_double_pendulum_diverges_but_keeps_its_energy",
+    "test_stability.py::test_a_million_steps_keep_the_energy_bounded[MidpointVI",
+    "test_solvers.py::test_grad_through_args_and_general_lagrangian",
+    "test_solvers.py::test_singular_hessian",  # test_guards.py covers it, two units
+    "test_resume.py::test_jump_discards_a_stale_state[LinearizedVI-centered",
+)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.nodeid.removeprefix("tests/").startswith(SLOW):
+            item.add_marker(pytest.mark.slow)
