@@ -128,3 +128,13 @@ ALL_SOLVERS = [
     ("LinearizedVI", dvi.LinearizedVI()),
     ("LinearizedVI(centered)", dvi.LinearizedVI(velocity="centered")),
 ]
+
+
+@eqx.filter_jit
+def final_state(lagrangian, solver, y0, t1, dt0):
+    """The state at `t1` of a fixed-step solve from `t0 = 0` (one compilation per
+    solver and Lagrangian)."""
+    sol = dfx.diffeqsolve(
+        dvi.terms_for(solver, lagrangian), solver, 0.0, t1, dt0, y0, max_steps=1024
+    )
+    return jax.tree.map(lambda x: x[-1], sol.ys)

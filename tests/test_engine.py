@@ -3,8 +3,6 @@
 
 import diffrax as dfx
 import diffrax_vi as dvi
-import equinox as eqx
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -13,6 +11,7 @@ from diffrax_vi._solver.vprk import gauss_tableau, lobatto_tableau
 from .helpers import (
     ALL_SOLVERS,
     DoublePendulum,
+    final_state,
     fitted_order,
     KEPLER,
     kepler_state,
@@ -20,14 +19,6 @@ from .helpers import (
     Pendulum,
     reference,
 )
-
-
-@eqx.filter_jit
-def _final(lagrangian, solver, y0, t1, dt0):
-    sol = dfx.diffeqsolve(
-        dvi.terms_for(solver, lagrangian), solver, 0.0, t1, dt0, y0, max_steps=1024
-    )
-    return jax.tree.map(lambda x: x[-1], sol.ys)
 
 
 # Published coefficients, typed by hand (Hairer, Lubich & Wanner, Tables II.1.1 and
@@ -61,8 +52,8 @@ def test_user_typed_tableau_reproduces_the_library_method(typed, named):
     solver = dvi.VPRK(typed)
     assert solver.order(None) == named.order(None)
     y0 = (jnp.array([0.4, -0.7]), jnp.array([0.3, 0.5]))
-    a = _final(DoublePendulum(), solver, y0, 2.0, jnp.array(0.05))
-    b = _final(DoublePendulum(), named, y0, 2.0, jnp.array(0.05))
+    a = final_state(DoublePendulum(), solver, y0, 2.0, jnp.array(0.05))
+    b = final_state(DoublePendulum(), named, y0, 2.0, jnp.array(0.05))
     assert max_abs_diff(a, b) < 1e-13
 
 
@@ -118,7 +109,7 @@ def test_nested_composition_has_order_six():
     exact = reference(KEPLER, y0, t1)
     ns = [200, 280, 400, 560]
     errors = [
-        max_abs_diff(_final(KEPLER, solver, y0, t1, jnp.array(t1 / n)), exact)
+        max_abs_diff(final_state(KEPLER, solver, y0, t1, jnp.array(t1 / n)), exact)
         for n in ns
     ]
     assert min(errors) > 1e-12, errors
@@ -135,8 +126,10 @@ def test_composition_scheme_as_coefficients():
     solver = dvi.Composition(dvi.MidpointVI(), [g, 1 - 2 * g, g])
     assert solver.order(None) == 4  # inferred from sum g^3 = 0
     y0 = (jnp.array(1.2), jnp.array(0.3))
-    a = _final(Pendulum(), solver, y0, 2.0, jnp.array(0.1))
-    b = _final(Pendulum(), dvi.Composition(dvi.MidpointVI(), "yoshida4"), y0, 2.0, 0.1)
+    a = final_state(Pendulum(), solver, y0, 2.0, jnp.array(0.1))
+    b = final_state(
+        Pendulum(), dvi.Composition(dvi.MidpointVI(), "yoshida4"), y0, 2.0, 0.1
+    )
     assert max_abs_diff(a, b) < 1e-15
     # Symmetric and consistent but with sum g^3 != 0: order 2 only.
     assert dvi.Composition(dvi.MidpointVI(), [0.25, 0.5, 0.25]).order(None) == 2

@@ -5,7 +5,6 @@ import dataclasses
 
 import diffrax as dfx
 import diffrax_vi as dvi
-import equinox as eqx
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
@@ -16,6 +15,7 @@ from diffrax_vi._solver.vprk import gauss_tableau, lobatto_tableau
 
 from .helpers import (
     DoublePendulum,
+    final_state,
     fitted_order,
     KEPLER,
     kepler_state,
@@ -23,14 +23,6 @@ from .helpers import (
     Pendulum,
     reference,
 )
-
-
-@eqx.filter_jit
-def _final(lagrangian, solver, y0, t1, dt0):
-    sol = dfx.diffeqsolve(
-        dvi.terms_for(solver, lagrangian), solver, 0.0, t1, dt0, y0, max_steps=1024
-    )
-    return jax.tree.map(lambda x: x[-1], sol.ys)
 
 
 # (solver, claimed order, step counts for the pendulum and for Kepler): in the
@@ -94,7 +86,7 @@ def test_order(solver, order, ns_pendulum, ns_kepler, problem):
         lagrangian, y0, t1, ns = KEPLER, kepler_state(), 2 * np.pi, ns_kepler
     exact = reference(lagrangian, y0, t1)
     errors = [
-        max_abs_diff(_final(lagrangian, solver, y0, t1, jnp.array(t1 / n)), exact)
+        max_abs_diff(final_state(lagrangian, solver, y0, t1, jnp.array(t1 / n)), exact)
         for n in ns
     ]
     assert min(errors) > 1e-12, errors  # the fit is above the round-off floor
@@ -103,11 +95,11 @@ def test_order(solver, order, ns_pendulum, ns_kepler, problem):
 
 def test_gauss1_is_midpoint_and_lobatto2_is_stormer_verlet():
     y0 = (jnp.array(1.2), jnp.array(0.3))
-    a = _final(Pendulum(), dvi.GaussVPRK(1), y0, 3.0, jnp.array(0.05))
-    b = _final(Pendulum(), dvi.MidpointVI(), y0, 3.0, jnp.array(0.05))
+    a = final_state(Pendulum(), dvi.GaussVPRK(1), y0, 3.0, jnp.array(0.05))
+    b = final_state(Pendulum(), dvi.MidpointVI(), y0, 3.0, jnp.array(0.05))
     assert max_abs_diff(a, b) < 1e-15
-    c = _final(Pendulum(), dvi.LobattoVPRK(2), y0, 3.0, jnp.array(0.05))
-    d = _final(Pendulum(), dvi.StormerVerlet(), y0, 3.0, jnp.array(0.05))
+    c = final_state(Pendulum(), dvi.LobattoVPRK(2), y0, 3.0, jnp.array(0.05))
+    d = final_state(Pendulum(), dvi.StormerVerlet(), y0, 3.0, jnp.array(0.05))
     assert max_abs_diff(c, d) < 1e-14
 
 

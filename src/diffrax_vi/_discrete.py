@@ -132,17 +132,16 @@ def average_grads(rule, lagrangian, t0, h, q0, v, args) -> tuple[P, P]:
     return jax.grad(rule.average, argnums=(3, 4))(lagrangian, t0, h, q0, v, args)
 
 
-def step_residual(rule, lagrangian, t0, h, q0, p0, v, args) -> tuple[P, P]:
+def step_residual(rule, lagrangian, t0, h, q0, p0, v, args, offset) -> tuple[P, P]:
     r"""The equation of the position–momentum step in the step's velocity $v$,
     $-D_1 L_d(q_0, q_0 + h v) - p_0 = \partial_v\Lambda - h\,\partial_{q_0}\Lambda
     - p_0$ (zero on the step: the discrete Legendre transform $p_0 = -D_1 L_d$, the
     fibre derivative of Hirani (2000), eq. (3.4)), and the size of the momenta it
-    balances. Its Jacobian in $v$ tends to $\partial^2 L/\partial v^2$ as
-    $h \to 0$."""
+    balances (with `offset`, `momentum_offset` at `q0`, computed once per step by the
+    caller, not per Newton iteration). Its Jacobian in $v$ tends to
+    $\partial^2 L/\partial v^2$ as $h \to 0$."""
     dq, dv = average_grads(rule, lagrangian, t0, h, q0, v, args)
     r = jtu.tree_map(lambda p, a, b: b - h * a - p, p0, dq, dv)
-    # (The offset depends on q0 alone: XLA hoists it out of the Newton loop.)
-    offset = momentum_offset(lagrangian, t0, q0, args)
     s = jtu.tree_map(
         lambda p, a, b, c: jnp.abs(p) + jnp.abs(h * a) + jnp.abs(b) + c,
         p0,
@@ -180,8 +179,9 @@ def discrete_hamiltonian_map(
     `(q1 - q0, p1 - p0, v, result)`: the increments, for the caller to add (with
     compensated summation), and `v = (q1 - q0)/h` the step's velocity.
     """
+    offset = momentum_offset(lagrangian, t0, q0, args)
     solved = solve(
-        lambda v: step_residual(rule, lagrangian, t0, h, q0, p0, v, args),
+        lambda v: step_residual(rule, lagrangian, t0, h, q0, p0, v, args, offset),
         v_guess,
         root_finder,
         max_steps,

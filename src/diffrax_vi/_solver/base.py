@@ -21,6 +21,7 @@ from equinox import AbstractVar
 from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, P, Q, RealScalarLike, V
+from .._lagrangian import momentum_offset
 from .._misc import split_state, state_dtype, sum_is_finite
 from .._private_api import NoForwardingSolverMeta, WrapTerm
 from .._term import LagrangianTerm
@@ -141,8 +142,10 @@ def check_times(t0: RealScalarLike, t1: RealScalarLike, state: PyTree) -> PyTree
 
 class StepInputs(eqx.Module):
     """One step as a method sees it: the term, the physical start and end times, the
-    signed step `h` (all in the state's dtype), the state, `args`, and the
-    compensation of the summation (`None` when it is off)."""
+    signed step `h` (all in the state's dtype), the state, `args`, the
+    compensation of the summation (`None` when it is off), and `momentum_offset`
+    at `q0` for the scale of the implicit residuals (computed once per step; XLA
+    drops it where no method reads it)."""
 
     term: LagrangianTerm
     t0: Array
@@ -152,6 +155,7 @@ class StepInputs(eqx.Module):
     p0: P
     args: Args
     compensation: PyTree | None
+    momentum_offset: P
     dtype: np.dtype = eqx.field(static=True)
 
     def end_position(self, dq: Q) -> Q:
@@ -175,15 +179,17 @@ def step_inputs(
     q0, p0 = split_state(y0)
     dtype = state_dtype(y0)
     h = jnp.asarray(step_control(terms, substep), dtype=dtype)
+    t0 = jnp.asarray(direction * t0, dtype=dtype)
     return StepInputs(
         term=term,
-        t0=jnp.asarray(direction * t0, dtype=dtype),
+        t0=t0,
         t1=jnp.asarray(direction * t1, dtype=dtype),
         h=h,
         q0=q0,
         p0=p0,
         args=args,
         compensation=compensation,
+        momentum_offset=momentum_offset(term.lagrangian, t0, q0, args),
         dtype=dtype,
     )
 

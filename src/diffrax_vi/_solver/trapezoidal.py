@@ -94,7 +94,15 @@ class TrapezoidalVI(
             state,
             made_jump,
             lambda v: step_residual(
-                _RULE, lagrangian, step.t0, step.h, step.q0, step.p0, v, step.args
+                _RULE,
+                lagrangian,
+                step.t0,
+                step.h,
+                step.q0,
+                step.p0,
+                v,
+                step.args,
+                step.momentum_offset,
             ),
             lambda v: step_increments(
                 _RULE, lagrangian, step.t0, step.h, step.q0, v, step.args

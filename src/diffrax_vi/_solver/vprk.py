@@ -32,7 +32,6 @@ from .._lagrangian import (
     AbstractSeparableLagrangian,
     broadcast_mass,
     lagrangian_value,
-    momentum_offset,
 )
 from .base import StepInputs
 from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC, SYMMETRIC_POSITIVE
@@ -245,7 +244,6 @@ class AbstractVPRK(AbstractImplicitVI):
         r = jtu.tree_map(
             lambda pv, p, k: pv - p[None] - step.h * k, dl_dv, step.p0, kicks
         )
-        offset = momentum_offset(step.term.lagrangian, step.t0, step.q0, step.args)
         s = jtu.tree_map(
             lambda pv, p, k, c: (
                 jnp.abs(pv) + jnp.abs(p[None]) + jnp.abs(step.h) * k + c[None]
@@ -253,7 +251,7 @@ class AbstractVPRK(AbstractImplicitVI):
             dl_dv,
             step.p0,
             kick_sizes,
-            offset,
+            step.momentum_offset,
         )
         return r, s
 
