@@ -134,6 +134,29 @@ def test_adaptive_study_takes_the_steps_of_a_plain_solve(n_save):
         assert run.errors["energy"][i + 1] == pytest.approx(expected, rel=1e-10)
 
 
+def test_wall_time_is_of_the_method_alone(monkeypatch):
+    # The tracking of errors adds work to every step (on CPU it made Stormer-Verlet on
+    # Kepler 25x slower), so a study times a separate plain solve: the solver itself,
+    # unwrapped, saving only t1, with the study's step and controller.
+    calls = []
+    original = dfx.diffeqsolve
+
+    def spy(terms, solver, t0, t1, dt0, y0, **kwargs):
+        calls.append((solver, dt0, kwargs["saveat"], kwargs["stepsize_controller"]))
+        return original(terms, solver, t0, t1, dt0, y0, **kwargs)
+
+    monkeypatch.setattr(dfx, "diffeqsolve", spy)
+    study = drift(kepler(), ["StormerVerlet", "Tsit5+PID"], periods=1, n_save=5)
+    assert [r.result for r in study.runs] == ["successful"] * 2
+    plain = [c for c in calls if c[2] == dfx.SaveAt(t1=True)]
+    assert [type(c[0]) for c in plain] == [dvi.StormerVerlet, dfx.Tsit5]
+    (fixed, _, _, fixed_control), (adaptive, dt0, _, control) = plain
+    assert isinstance(fixed_control, dfx.ConstantStepSize) and dt0 is None
+    assert control == dfx.PIDController(rtol=1e-8, atol=1e-8)
+    tracked = [c for c in calls if c[2] != dfx.SaveAt(t1=True)]
+    assert len(tracked) == 2 and all(c[0].solver in (fixed, adaptive) for c in tracked)
+
+
 DEFAULT = ["MidpointVI", "StormerVerlet", "KahanLi8", "Tsit5", "Dopri8", "Dopri8+PID"]
 
 
