@@ -64,6 +64,7 @@ STUDIES = {
         None,
     ),
     "learned": (["MidpointVI", "StormerVerlet", "Tsit5"], 1000, 50, None),
+    "bead_wire": (["MidpointVI", "GaussVPRK2", "Tsit5", "Dopri8"], 200, 40, None),
 }
 
 

@@ -48,7 +48,7 @@ def _final_sum(lagrangian, scene):
 
 
 # The two largest scenes take most of the time; run them with `-m slow`.
-SLOW_SCENES = ("double_pendulum", "outer_solar_system")
+SLOW_SCENES = ("double_pendulum", "outer_solar_system", "bead_wire")
 
 
 @pytest.mark.parametrize(

@@ -36,11 +36,20 @@ import optimistix as optx
 from equinox import AbstractVar
 from jaxtyping import Array, Int, PyTree, Scalar
 
+from ._private_api import unvmap_any
 
-# Systems of at most this many unknowns are solved with a dense LU factorisation:
-# below it the Jacobian's n products and the factorisation cost less than a Krylov
-# solve (`benchmarks/scaling.py` measures the crossover).
+
+# Symmetric eigenvalue problems and linear solves with d2L/dv2 of at most this many
+# unknowns are done densely (exact extremes, one factorisation).
 DENSE_MAX = 64
+
+# Newton's method factorises the dense Jacobian of at most this many unknowns, and
+# goes matrix-free beyond: the Jacobian costs n products, while a BiCGStab or CG
+# solve of a well-conditioned step takes a few. Measured per step of MidpointVI on
+# the generic chain / the bead wire: 18 / 94 us dense against 12 / 34 us Krylov at
+# n = 8, 111 / 1026 against 42 / 256 at n = 64 (`benchmarks/scaling.py`). Small
+# systems keep the dense solve, whose pivots also detect a singular Jacobian.
+NEWTON_DENSE_MAX = 16
 
 
 def tree_size(tree: PyTree) -> int:
@@ -159,16 +168,79 @@ def _pivot_ratio(lu: Array) -> Scalar:
     return jnp.min(pivots) / jnp.max(pivots)
 
 
+def _max_abs(tree: PyTree) -> Scalar:
+    size = jnp.max(jnp.stack([jnp.max(jnp.abs(x)) for x in jtu.tree_leaves(tree)]))
+    return lax.stop_gradient(jnp.where(size > 0, size, 1))
+
+
+def krylov_solve(
+    matvec: Callable[[PyTree], PyTree],
+    rhs: PyTree,
+    rtol: float | Scalar,
+    tags: frozenset,
+    max_steps: int,
+    preconditioner: PyTree | None = None,
+) -> tuple[PyTree, lx.RESULTS]:
+    """`A^{-1} b` for the operator `matvec`, matrix-free: conjugate gradients where
+    `tags` say symmetric positive (semi)definite, else BiCGStab, and restarted
+    GMRES(20) where BiCGStab breaks down; to relative accuracy `rtol`, preconditioned
+    by positive diagonal weights `preconditioner`. (lineax's GMRES makes all 20
+    Arnoldi steps of a cycle before it tests convergence: 20 products where a nearly
+    diagonal Newton matrix needs 2, which made it 8x slower than BiCGStab at 1024
+    unknowns.)
+
+    The solve runs on `A / c` and `b / |b|`, with `c` the size of `A` along `b`:
+    lineax's tests are absolute (GMRES breaks down on a right-hand side below about
+    1e-16) and its tolerances componentwise, so the solve must not see the units.
+    In those units `atol = rtol`: a component of the solution that happens to be
+    near zero then does not demand more than `rtol` of the whole (with `atol = 0`,
+    GMRES reported the lucky breakdown of an exactly captured solution as a
+    failure)."""
+    b_size = _max_abs(rhs)
+    b = jtu.tree_map(lambda x: x / b_size, rhs)
+    weigh = lambda tree: (
+        tree
+        if preconditioner is None
+        else jtu.tree_map(lambda p, x: p * x, preconditioner, tree)
+    )
+    a_size = _max_abs(weigh(matvec(b)))
+    b_struct = jax.eval_shape(lambda: rhs)
+    operator = lx.FunctionLinearOperator(
+        lambda w: jtu.tree_map(lambda x: x / a_size, matvec(w)), b_struct, tags=tags
+    )
+    options = {}
+    if preconditioner is not None:
+        options["preconditioner"] = lx.FunctionLinearOperator(
+            weigh, b_struct, tags=(lx.symmetric_tag, lx.positive_semidefinite_tag)
+        )
+
+    def solve(solver):
+        sol = lx.linear_solve(operator, b, solver, options=options, throw=False)
+        return sol.value, sol.result
+
+    if lx.positive_semidefinite_tag in tags:
+        value, result = solve(lx.CG(rtol=rtol, atol=rtol, max_steps=max_steps))
+    else:
+        value, result = solve(lx.BiCGStab(rtol=rtol, atol=rtol, max_steps=max_steps))
+        gmres = lx.GMRES(
+            rtol=rtol, atol=rtol, max_steps=max_steps, restart=min(20, max_steps)
+        )
+        failed = unvmap_any(result != lx.RESULTS.successful)
+        value, result = lax.cond(failed, lambda: solve(gmres), lambda: (value, result))
+    return jtu.tree_map(lambda x: x * (b_size / a_size), value), result
+
+
 class Newton(AbstractVIRootFinder):
     r"""Newton's method for the implicit steps of the variational solvers and for
     the inverse Legendre map, as an `optimistix` root finder.
 
     Each iteration solves $J\Delta = r$ for the Jacobian $J$ of the residual: by LU
-    on the dense Jacobian for at most 64 unknowns, else matrix-free by a Krylov method
+    on the dense Jacobian for at most 16 unknowns, else matrix-free by a Krylov method
     on Jacobian–vector products (conjugate gradients where $J$ is symmetric positive
     definite, as for the midpoint step of a separable Lagrangian and the Legendre
-    map; GMRES otherwise), preconditioned by the inverse mass and solved only as
-    accurately as Newton's progress needs (Eisenstat–Walker forcing, choice 2). It
+    map; BiCGStab otherwise, GMRES where it breaks down), preconditioned by the
+    inverse mass and solved only as accurately as Newton's progress needs
+    (Eisenstat–Walker forcing, choice 2). It
     stops after the update from an iterate whose residual is below `rtol` relative
     to the terms it balances: with quadratic convergence the error left is at
     round-off, as with a dense solve.
@@ -176,7 +248,7 @@ class Newton(AbstractVIRootFinder):
     **Arguments:**
 
     - `rtol`: the dimensionless tolerance; `None` for $\sqrt\epsilon$ of the dtype.
-    - `linear_solver`: `"auto"` (dense up to 64 unknowns, Krylov beyond), `"dense"`,
+    - `linear_solver`: `"auto"` (dense up to 16 unknowns, Krylov beyond), `"dense"`,
         `"krylov"`, or any `lineax.AbstractLinearSolver`.
     - `damped`: backtrack along each Newton direction until the residual decreases
         and stays finite: convergence from a poor start for monotone problems such
@@ -205,50 +277,11 @@ class Newton(AbstractVIRootFinder):
     def dense(self, y: PyTree) -> bool:
         """Whether the linear solves are dense LU."""
         if self.linear_solver == "auto":
-            return tree_size(y) <= DENSE_MAX
+            return tree_size(y) <= NEWTON_DENSE_MAX
         return self.linear_solver == "dense"
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         return _newton_init(y, options.get("carry"))
-
-    def _krylov_solve(self, lin, y, f, options, tags, forcing) -> lx.Solution:
-        """`J^{-1} f` by CG or GMRES on `J / c` and `f / |f|`, with `c` the size of
-        `J` along `f`: lineax's breakdown tests are absolute (GMRES breaks down on a
-        right-hand side below about 1e-16), so the solve must not see the units."""
-        f_size = jnp.max(jnp.stack([jnp.max(jnp.abs(x)) for x in jtu.tree_leaves(f)]))
-        f_size = lax.stop_gradient(jnp.where(f_size > 0, f_size, 1))
-        rhs = jtu.tree_map(lambda x: x / f_size, f)
-        preconditioner = options.get("preconditioner")
-        weigh = lambda tree: (
-            tree
-            if preconditioner is None
-            else jtu.tree_map(lambda p, x: p * x, preconditioner, tree)
-        )
-        along = jtu.tree_leaves(weigh(lin(rhs)))
-        j_size = jnp.max(jnp.stack([jnp.max(jnp.abs(x)) for x in along]))
-        j_size = lax.stop_gradient(jnp.where(j_size > 0, j_size, 1))
-        operator = lx.FunctionLinearOperator(
-            lambda w: jtu.tree_map(lambda x: x / j_size, lin(w)),
-            jax.eval_shape(lambda: y),
-            tags=tags,
-        )
-        lx_options = {}
-        if preconditioner is not None:
-            lx_options["preconditioner"] = lx.DiagonalLinearOperator(
-                preconditioner, tags=(lx.positive_semidefinite_tag,)
-            )
-        if lx.positive_semidefinite_tag in tags:
-            solver = lx.CG(rtol=forcing, atol=0.0, max_steps=self.krylov_max_steps)
-        else:
-            solver = lx.GMRES(
-                rtol=forcing,
-                atol=0.0,
-                max_steps=self.krylov_max_steps,
-                restart=min(20, self.krylov_max_steps),
-            )
-        sol = lx.linear_solve(operator, rhs, solver, options=lx_options, throw=False)
-        value = jtu.tree_map(lambda x: x * (f_size / j_size), sol.value)
-        return eqx.tree_at(lambda s: s.value, sol, value)
 
     def step(self, fn, y, args, options, state, tags):
         f, lin, scale = jax.linearize(lambda _y: fn(_y, args), y, has_aux=True)
@@ -257,10 +290,12 @@ class Newton(AbstractVIRootFinder):
         pivot_ratio = state.pivot_ratio
         if not isinstance(self.linear_solver, str):
             sol = lx.linear_solve(operator, f, self.linear_solver, throw=False)
+            delta, linear_result = sol.value, sol.result
         elif self.dense(y):
             lu_state = lx.LU().init(operator, {})
             pivot_ratio = _pivot_ratio(lu_state[0][0])
             sol = lx.linear_solve(operator, f, lx.LU(), state=lu_state, throw=False)
+            delta, linear_result = sol.value, sol.result
         else:
             tol = self.tolerance(y)
             # Eisenstat-Walker choice 2 (gamma = 0.9, alpha = 2), never asking for
@@ -271,8 +306,14 @@ class Newton(AbstractVIRootFinder):
                 0.5,
             )
             forcing = jnp.where(jnp.isfinite(state.rho_prev), forcing, 0.5)
-            sol = self._krylov_solve(lin, y, f, options, tags, forcing)
-        delta = sol.value
+            delta, linear_result = krylov_solve(
+                lin,
+                f,
+                forcing,
+                tags,
+                self.krylov_max_steps,
+                options.get("preconditioner"),
+            )
         if self.damped:
             y_new = _backtrack(fn, y, args, delta, rho, scale)
         else:
@@ -282,7 +323,7 @@ class Newton(AbstractVIRootFinder):
             rho,
             pivot_ratio,
             state.step + 1,
-            optx.RESULTS.promote(sol.result),
+            optx.RESULTS.promote(linear_result),
             state.carry,
         )
         return y_new, new, scale

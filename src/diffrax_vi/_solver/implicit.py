@@ -298,7 +298,7 @@ SYMMETRIC_POSITIVE = frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag})
 IMPLICIT_ARGS_DOC = """- `root_finder`: how the implicit equations are solved: `None`
     (the default) chooses the fixed-point iteration for a separable Lagrangian, falling
     back to Newton's method where it does not converge (stiff steps), and Newton's
-    method otherwise, with dense LU up to 64 unknowns and matrix-free Krylov
+    method otherwise, with dense LU up to 16 unknowns and matrix-free Krylov
     iterations beyond; or [`diffrax_vi.Newton`][], [`diffrax_vi.SimplifiedNewton`][],
     [`diffrax_vi.FixedPoint`][], or any `optimistix.AbstractRootFinder` (given the
     residual relative to its largest term). Every tolerance is relative to the size

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import lineax as lx
 import optimistix as optx
-from jaxtyping import Array, ArrayLike, Bool
+from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._custom_types import P, Q, RealScalarLike
 from .._discrete import (
@@ -17,7 +17,13 @@ from .._discrete import (
     MidpointRule,
 )
 from .._misc import all_finite, state_dtype, tree_max_abs
-from .._nonlinear import DENSE_MAX, Newton, tree_dtype, tree_size
+from .._nonlinear import (
+    krylov_solve,
+    Newton,
+    NEWTON_DENSE_MAX,
+    tree_dtype,
+    tree_size,
+)
 from .._private_api import unvmap_any
 from .base import (
     AbstractVariationalSolver,
@@ -112,14 +118,15 @@ class LinearizedVI(AbstractVariationalSolver):
     def order(self, terms):
         return None
 
-    def _linear_solver(self, z) -> lx.AbstractLinearSolver:
-        if self.linear_solver is not None:
-            return self.linear_solver
-        if tree_size(z) <= DENSE_MAX:
-            return lx.LU()
+    def _linear_solve(self, matvec, rhs) -> tuple[PyTree, lx.RESULTS]:
+        if self.linear_solver is not None or tree_size(rhs) <= NEWTON_DENSE_MAX:
+            operator = lx.FunctionLinearOperator(matvec, jax.eval_shape(lambda: rhs))
+            solver = lx.LU() if self.linear_solver is None else self.linear_solver
+            sol = lx.linear_solve(operator, rhs, solver, throw=False)
+            return sol.value, sol.result
         # One solve with no Newton iteration to correct it: to near round-off.
-        eps = float(jnp.finfo(tree_dtype(z)).eps)
-        return lx.GMRES(rtol=100 * eps, atol=0.0, max_steps=10 * tree_size(z))
+        eps = float(jnp.finfo(tree_dtype(rhs)).eps)
+        return krylov_solve(matvec, rhs, 100 * eps, frozenset(), 10 * tree_size(rhs))
 
     def _n_past(self) -> int:
         return 2 if self.velocity == "forward" else 3
@@ -203,15 +210,6 @@ class LinearizedVI(AbstractVariationalSolver):
                 self.discrete_lagrangian, lagrangian, ts, (a, b, c), step.args
             )
 
-        (left, right), linear_parts = jax.linearize(momenta, x, y, z)
-        drift = _add(left, right)
-        momentum = jnp.maximum(
-            history.momentum, jnp.maximum(tree_max_abs(left), tree_max_abs(right))
-        )
-
-        def linear(*tangents):
-            return _add(*linear_parts(*tangents))
-
         if self.velocity == "forward":
             u_x = _scale(1 / h_xy, _sub(y, x))
             u_y = _scale(1 / h_yz, _sub(z, y))
@@ -224,12 +222,18 @@ class LinearizedVI(AbstractVariationalSolver):
             span = h_yz + h  # q_{k+1} = q_{k-1} + (h_{k-1} + h) u_k
             base = y
         zeros = jtu.tree_map(jnp.zeros_like, z)
-        rhs = jtu.tree_map(jnp.negative, linear(u_x, u_y, zeros))
-        operator = lx.FunctionLinearOperator(
-            lambda w: linear(zeros, zeros, w), jax.eval_shape(lambda: z)
+        (left, right), (tangent_left, tangent_right) = jax.jvp(
+            momenta, (x, y, z), (u_x, u_y, zeros)
         )
-        sol = lx.linear_solve(operator, rhs, self._linear_solver(z), throw=False)
-        u_z = sol.value
+        drift = _add(left, right)
+        momentum = jnp.maximum(
+            history.momentum, jnp.maximum(tree_max_abs(left), tree_max_abs(right))
+        )
+        rhs = jtu.tree_map(jnp.negative, _add(tangent_left, tangent_right))
+        # The matrix dF/dq_{k+1}: only D1 Ld(q_k, q_{k+1}) depends on q_{k+1}, so
+        # each product of the linear solve differentiates it alone.
+        _, matvec = jax.linearize(lambda c: momenta(x, y, c)[1], z)
+        u_z, linear_result = self._linear_solve(matvec, rhs)
         dq = jtu.tree_map(lambda b, u, q: (b - q) + span * u, base, u_z, q0)
         # The discrete Legendre transform p_{k+1} = D2 Ld(q_k, q_{k+1}) through the
         # step's velocity: u_z itself for forward velocities, so nothing cancels.
@@ -240,7 +244,7 @@ class LinearizedVI(AbstractVariationalSolver):
         _, p1 = average_grads(
             self.discrete_lagrangian, lagrangian, tp0, h, q0, v, step.args
         )
-        result = start_result(step, all_finite(qs), dfx.RESULTS.promote(sol.result))
+        result = start_result(step, all_finite(qs), dfx.RESULTS.promote(linear_result))
         if self.max_del_residual is not None:
             # The triple this step linearized about has left the DEL manifold S: the
             # linearization no longer follows the variational integrator.
@@ -266,7 +270,8 @@ LinearizedVI.__init__.__doc__ = r"""**Arguments:**
 - `discrete_lagrangian`: the discrete Lagrangian whose DEL equations are linearized:
     [`diffrax_vi.MidpointRule`][] (default) or [`diffrax_vi.TrapezoidalRule`][].
 - `linear_solver`: the lineax solver for the step's linear system. Defaults to LU
-    up to 64 degrees of freedom and GMRES (to near round-off) beyond.
+    up to 16 degrees of freedom and BiCGStab (GMRES where it breaks down), to near
+    round-off, beyond.
 - `root_finder`, `root_find_max_steps`: for the backward variational steps that build
     the starting history (at `init` and after a jump); as for
     [`diffrax_vi.MidpointVI`][].

@@ -29,6 +29,7 @@ from ._solar import (
     NBodyLagrangian as NBodyLagrangian,
     outer_solar_system as outer_solar_system,
 )
+from ._wire import bead_wire as bead_wire, BeadWireLagrangian as BeadWireLagrangian
 
 
 # Name -> a function making the scene with its default parameters.
@@ -43,4 +44,5 @@ SCENES = {
     "fpu": fpu,
     "outer_solar_system": outer_solar_system,
     "learned": learned,
+    "bead_wire": bead_wire,
 }

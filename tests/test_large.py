@@ -1,0 +1,144 @@
+"""Large systems: the bead-wire scene against hand-derived equations of motion, and the
+matrix-free (Krylov) solves against the dense ones they replace beyond 16 unknowns."""
+
+import diffrax as dfx
+import diffrax_vi as dvi
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import pytest
+import scipy.integrate
+from diffrax_vi import scenes
+
+from .helpers import max_abs_diff, reference
+
+
+def _bead_wire_rhs(n, m=1.0, a=0.2, ell=1.0, kappa=1.0, g=1.0):
+    """Hand-derived Euler-Lagrange equations of the bead wire in (x, v):
+    m (1 + y'^2) x'' + m y' y'' x'^2 = -dV/dx, for y = -a cos(k x)."""
+    k = 2 * np.pi / ell
+
+    def rhs(t, state):
+        x, v = state[:n], state[n:]
+        xs = np.concatenate([[0.0], x, [(n + 1) * ell]])
+        ys = -a * np.cos(k * xs)
+        slope = a * k * np.sin(k * xs)
+        curvature = a * k**2 * np.cos(k * xs)
+        dx, dy = np.diff(xs), np.diff(ys)
+        d = np.hypot(dx, dy)
+        tension = kappa * (d - ell) / d  # per unit of (dx + dy y')
+        # Spring j joins beads j and j + 1 (0 and n + 1 are fixed).
+        grad = m * g * slope[1:-1]
+        grad += tension[:-1] * (dx[:-1] + dy[:-1] * slope[1:-1])
+        grad -= tension[1:] * (dx[1:] + dy[1:] * slope[1:-1])
+        mass = m * (1 + slope[1:-1] ** 2)
+        accel = (-grad - m * slope[1:-1] * curvature[1:-1] * v**2) / mass
+        return np.concatenate([v, accel])
+
+    return rhs
+
+
+def test_bead_wire_matches_hand_derived_equations():
+    n = 5
+    scene = scenes.bead_wire(n)
+    t1 = 3 * scene.period
+    q0 = np.asarray(scene.y0[0])
+    sol = scipy.integrate.solve_ivp(
+        _bead_wire_rhs(n),
+        (0, t1),
+        np.concatenate([q0, np.zeros(n)]),
+        method="DOP853",
+        rtol=1e-13,
+        atol=1e-13,
+    )
+    x, v = sol.y[:n, -1], sol.y[n:, -1]
+    p = (1 + (0.2 * 2 * np.pi * np.sin(2 * np.pi * x)) ** 2) * v
+    theirs = reference(scene.lagrangian, scene.y0, t1)
+    assert max_abs_diff(theirs, (x, p)) < 1e-9
+    assert max_abs_diff(theirs, scene.y0) > 0.05  # it moved
+
+
+def test_bead_wire_rejects_bad_parameters():
+    with pytest.raises(ValueError, match="leaves its trough"):
+        scenes.bead_wire(8, displacement=0.6)
+    with pytest.raises(ValueError, match="n >= 1"):
+        scenes.bead_wire(0)
+
+
+def _solve(lagrangian, solver, y0, h, steps):
+    sol = dfx.diffeqsolve(
+        dvi.terms_for(solver, lagrangian),
+        solver,
+        0.0,
+        h * steps,
+        h,
+        y0,
+        saveat=dfx.SaveAt(t1=True),
+        max_steps=steps,
+    )
+    assert sol.result == dfx.RESULTS.successful
+    return [y[-1] for y in sol.ys]
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda rf: dvi.MidpointVI(root_finder=rf),
+        pytest.param(
+            lambda rf: dvi.GaussVPRK(2, root_finder=rf), marks=pytest.mark.slow
+        ),
+        pytest.param(
+            lambda rf: dvi.TrapezoidalVI(root_finder=rf), marks=pytest.mark.slow
+        ),
+    ],
+    ids=["MidpointVI", "GaussVPRK2", "TrapezoidalVI"],
+)
+def test_krylov_newton_equals_dense_newton(make):
+    # 20 beads: above the 16 unknowns where Newton goes matrix-free by default. The
+    # Newton matrix is not symmetric (BiCGStab); both solves stop on the same
+    # residual test, so they agree to round-off amplified by 10 steps.
+    scene = scenes.bead_wire(20)
+    h = scene.period / 40
+    dense = _solve(
+        scene.lagrangian, make(dvi.Newton(linear_solver="dense")), scene.y0, h, 10
+    )
+    auto = _solve(scene.lagrangian, make(None), scene.y0, h, 10)
+    assert max_abs_diff(dense, auto) < 1e-10
+    assert max_abs_diff(dense, scene.y0) > 1e-2
+
+
+def test_large_separable_midpoint_equals_dense_newton():
+    # A separable chain of 40 masses: the fixed-point iteration, with Newton-Krylov
+    # (CG, preconditioned by the inverse mass) as its fallback, against dense Newton.
+    # Tracing the fallback used to fail for more than 64 unknowns.
+    n = 40
+    masses = jnp.linspace(1.0, 3.0, n)
+
+    def potential(t, q, args):
+        r = jnp.diff(jnp.concatenate([jnp.zeros(1), q, jnp.zeros(1)]))
+        return jnp.sum(0.5 * r**2 + 0.25 * r**4)
+
+    lagrangian = dvi.SeparableLagrangian(potential, masses)
+    y0 = (0.3 * jnp.sin(2.1 * jnp.arange(1.0, n + 1.0)), jnp.zeros(n))
+    stiff = dvi.MidpointVI(root_finder=dvi.Newton())
+    dense = dvi.MidpointVI(root_finder=dvi.Newton(linear_solver="dense"))
+    for solver in (dvi.MidpointVI(), stiff):
+        assert (
+            max_abs_diff(
+                _solve(lagrangian, solver, y0, 0.05, 20),
+                _solve(lagrangian, dense, y0, 0.05, 20),
+            )
+            < 1e-12
+        )
+
+
+@pytest.mark.slow  # 30 s, mostly compiling the dense path it compares with
+def test_linearized_krylov_equals_lu():
+    scene = scenes.bead_wire(17, displacement=0.05)
+    h = scene.period / 40
+    krylov = dvi.LinearizedVI(velocity="centered")
+    lu = dvi.LinearizedVI(velocity="centered", linear_solver=lx.LU())
+    a = _solve(scene.lagrangian, krylov, scene.y0, h, 10)
+    b = _solve(scene.lagrangian, lu, scene.y0, h, 10)
+    assert max_abs_diff(a, b) < 1e-11
+    assert max_abs_diff(a, scene.y0) > 1e-3
