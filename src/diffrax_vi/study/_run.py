@@ -117,6 +117,25 @@ def run(
     h = jnp.asarray(t1 / n_steps, dtype)
     meter = dfx.TqdmProgressMeter() if progress else dfx.NoProgressMeter()
 
+    def diffeqsolve(solver, y0, saveat, **kwargs):
+        # The method's own steps: an adaptive controller picks its own first step,
+        # as it does alone. A bounded loop is checkpointed for reverse-mode
+        # differentiation, which copied the per-interval maxima at every step:
+        # fixed steps need no bound.
+        return dfx.diffeqsolve(
+            terms,
+            solver,
+            ts[0],
+            ts[-1],
+            h if fixed else None,
+            y0,
+            saveat=saveat,
+            stepsize_controller=method.controller(),
+            max_steps=None if fixed else MAX_ADAPTIVE_STEPS_PER_SAVE * n_save,
+            throw=False,
+            **kwargs,
+        )
+
     def solve(y0):
         solver = TrackWorstError(
             method.solver,
@@ -125,21 +144,11 @@ def run(
             ts[1:],
             steps_per_interval=n_steps // n_save if fixed else None,
         )
-        sol = dfx.diffeqsolve(
-            terms,
+        sol = diffeqsolve(
             solver,
-            ts[0],
-            ts[-1],
-            # An adaptive controller picks its own first step, as it does alone.
-            h if fixed else None,
             y0,
-            saveat=dfx.SaveAt(t1=True, solver_state=True),
-            stepsize_controller=method.controller(),
-            # A bounded loop is checkpointed for reverse-mode differentiation, which
-            # copied the per-interval maxima at every step: fixed steps need no bound.
-            max_steps=None if fixed else MAX_ADAPTIVE_STEPS_PER_SAVE * n_save,
+            dfx.SaveAt(t1=True, solver_state=True),
             progress_meter=meter,
-            throw=False,
         )
         _, worst = sol.solver_state
         final = jax.tree.map(lambda x: x[-1], sol.ys)
@@ -167,18 +176,7 @@ def run(
         # to every step and, on CPU, can push XLA's compiled loop past the size
         # where it runs as one function (Stormer-Verlet on Kepler: 0.05 us per step
         # alone, 1.3 us tracked), so the wall time is this solve's.
-        return dfx.diffeqsolve(
-            terms,
-            method.solver,
-            ts[0],
-            ts[-1],
-            h if fixed else None,
-            y0,
-            saveat=dfx.SaveAt(t1=True),
-            stepsize_controller=method.controller(),
-            max_steps=None if fixed else MAX_ADAPTIVE_STEPS_PER_SAVE * n_save,
-            throw=False,
-        ).ys
+        return diffeqsolve(method.solver, y0, dfx.SaveAt(t1=True)).ys
 
     vmapped = jax.vmap if ensemble else lambda f: f
     solve = eqx.filter_jit(vmapped(solve))
