@@ -5,8 +5,9 @@ ensemble with `jax.sharding`).
 
 For each solver and ensemble size it prints the throughput and its ratio to the
 single-trajectory run, i.e. how much of the batch dimension the hardware turns into
-speed. Also a bare `jax.vmap` of a `jax.lax.scan` of the kick-drift-kick update, the
-floor for StormerVerlet without compensated summation ("StormerVerlet(plain)").
+speed. Also two floors for StormerVerlet without compensated summation
+("StormerVerlet(plain)"): a bare `jax.vmap` of a `jax.lax.scan` of the kick-drift-kick
+update, and the same scan with `unroll=32`; and the study's ratio to each.
 
 Run: `python benchmarks/ensemble_throughput.py [--sizes 1,64,1024,4096]`.
 """
@@ -22,13 +23,14 @@ jax.config.update("jax_enable_x64", True)
 from diffrax_vi import StormerVerlet  # noqa: E402
 from diffrax_vi.scenes import kepler  # noqa: E402
 from diffrax_vi.study import drift, Method  # noqa: E402
+from step_cost import add_xla_option, apply_xla_option  # noqa: E402
 
 
 # The bare scan has no compensated summation; this is its like-for-like solver.
 EXTRA = {"StormerVerlet(plain)": Method("StormerVerlet(plain)", StormerVerlet(False))}
 
 
-def bare_scan_throughput(scene, n, steps, h):
+def bare_scan_throughput(scene, n, steps, h, unroll=1):
     force = jax.grad(lambda q: -scene.lagrangian.potential(0.0, q, None))
 
     def trajectory(y0):
@@ -38,7 +40,7 @@ def bare_scan_throughput(scene, n, steps, h):
             q = q + h * p
             return (q, p + 0.5 * h * force(q)), None
 
-        return jax.lax.scan(step, y0, length=steps)[0]
+        return jax.lax.scan(step, y0, length=steps, unroll=unroll)[0]
 
     solve = jax.jit(jax.vmap(trajectory))
     y0s = scene.perturbed(jax.random.key(0), n)
@@ -55,13 +57,16 @@ def main():
     parser.add_argument(
         "--solvers", default="StormerVerlet(plain),StormerVerlet,MidpointVI,Tsit5"
     )
+    add_xla_option(parser)
     args = parser.parse_args()
+    print(apply_xla_option(args))
     sizes = [int(s) for s in args.sizes.split(",")]
     scene = kepler()
     periods = args.steps / 200
     print(f"devices: {jax.devices()}")
     print(f"Kepler e=0.6, {args.steps} steps (200 per orbit), float64")
     print(f"{'solver':>14} {'members':>8} {'traj*steps/s':>14} {'vs 1 member':>12}")
+    plain = {}
     for name in args.solvers.split(","):
         single = None
         for n in sizes:
@@ -76,14 +81,31 @@ def main():
             run = study.runs[0]
             throughput = n * run.steps / run.wall_time
             single = single or throughput
+            if name == "StormerVerlet(plain)":
+                plain[n] = throughput
             print(
                 f"{name:>14} {n:>8} {throughput:>14.3e} {throughput / single:>11.1f}x"
                 + ("" if run.result == "successful" else f"  ({run.result})")
             )
     h = scene.period / 200
+    print("\nfloors: a bare jax.vmap of a lax.scan of the same (uncompensated) update")
+    print(
+        f"{'members':>8} {'bare scan':>12} {'unroll=32':>12} "
+        f"{'study / bare':>13} {'study / unrolled':>17}"
+    )
     for n in sizes:
         rate = bare_scan_throughput(scene, n, args.steps, h)
-        print(f"{'bare scan':>14} {n:>8} {rate:>14.3e}")
+        unrolled = bare_scan_throughput(scene, n, args.steps, h, unroll=32)
+        ratios = (
+            f"{plain[n] / rate:>12.2f}x {plain[n] / unrolled:>16.2f}x"
+            if n in plain
+            else ""
+        )
+        print(f"{n:>8} {rate:>12.3e} {unrolled:>12.3e} {ratios}")
+    print(
+        "targets (issue 13): study >= 0.5x the bare scan at 1024 members on CPU; "
+        ">= 0.5x the unrolled scan at >= 131072 members on a GPU"
+    )
 
 
 if __name__ == "__main__":

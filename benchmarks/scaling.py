@@ -35,7 +35,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import scenes  # noqa: E402
-from step_cost import best_time  # noqa: E402
+from step_cost import add_xla_option, apply_xla_option, best_time  # noqa: E402
 
 
 def springs(q):
@@ -112,7 +112,9 @@ def main():
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--solvers", default=",".join(SOLVERS))
+    add_xla_option(parser)
     args = parser.parse_args()
+    print(apply_xla_option(args))
     sizes = [int(n) for n in args.sizes.split(",")]
     names = args.solvers.split(",")
     print(

@@ -5,7 +5,14 @@
   SemiImplicitEuler has none;
 - StormerVerlet over `diffrax.SemiImplicitEuler` on the same terms (target <= 1.2x);
 - the cost of compensated summation (on by default) over the plain update;
-- MidpointVI over `diffrax.Tsit5` on the same `LagrangianTerm` at the same step.
+- MidpointVI over `diffrax.Tsit5` on the same `LagrangianTerm` at the same step;
+- on Kepler, a composition over the sum of its substeps (Stormer-Verlet steps in
+  diffeqsolve; target <= 1.3x), and MidpointVI over a bare fixed-point implicit
+  midpoint in a `lax.scan` iterated to 1e-13 (target <= 1.5x), checked to agree.
+
+By default the script first calls `diffrax_vi.compile_small_loops_whole()` (as the
+`diffrax-vi` command line does), so that XLA compiles the small loops of both sides
+as one function; `--xla-default` keeps XLA's default 1 kB threshold instead.
 
 On Kepler (2 degrees of freedom) and Fermi-Pasta-Ulam-like chains of 64 and 4096
 particles with quartic springs, whose force costs about as much as an axpy. As a
@@ -13,11 +20,12 @@ reference, it also prints diffrax's own loop overhead: SemiImplicitEuler in diff
 over a bare scan of the SemiImplicitEuler update. Where that is large, the update is too
 cheap for any solver inside diffeqsolve to come near a bare scan.
 
-Run: `python benchmarks/step_cost.py [--repeats 5]`.
+Run: `taskset -c 1 python benchmarks/step_cost.py [--repeats 5] [--xla-default]`.
 """
 
 import argparse
 import importlib.metadata
+import os
 import time
 
 import diffrax as dfx
@@ -46,6 +54,24 @@ class Kepler(dvi.AbstractSeparableLagrangian):
 
     def potential(self, t, q, args):
         return -1 / jnp.sqrt(jnp.sum(q**2))
+
+
+def add_xla_option(parser):
+    """`--xla-default`: keep XLA's default small-loop threshold (see the docstring)."""
+    parser.add_argument(
+        "--xla-default",
+        action="store_true",
+        help="keep XLA's default small-loop threshold (1 kB) instead of "
+        "diffrax_vi.compile_small_loops_whole()",
+    )
+
+
+def apply_xla_option(args) -> str:
+    """Raise the small-loop threshold unless `--xla-default`; before JAX runs
+    anything. Returns the setting, to print."""
+    if not args.xla_default:
+        dvi.compile_small_loops_whole()
+    return f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}"
 
 
 def best_time(fn, *args, repeats):
@@ -136,17 +162,95 @@ def run(name, lagrangian, y0, h, n, repeats, implicit=True):
         print(f"  MidpointVI / Tsit5                 {t_mid / t_tsit:9.2f}x")
 
 
+def small_system(lagrangian, y0, h, n, repeats):
+    """Kepler: compositions against their substeps, MidpointVI against a bare
+    fixed-point implicit midpoint."""
+    pair = dvi.separable_terms(lagrangian)
+    term = dvi.LagrangianTerm(lagrangian)
+    us = lambda t: 1e6 * t / n
+
+    def solve(terms, solver):
+        @jax.jit
+        def f(y0):
+            sol = dfx.diffeqsolve(
+                terms,
+                solver,
+                0.0,
+                h * n,
+                h,
+                y0,
+                saveat=dfx.SaveAt(t1=True),
+                max_steps=n,
+            )
+            return jax.tree.map(lambda x: x[-1], sol.ys)
+
+        return f
+
+    force = lambda q: pair[1].vector_field(0.0, q, None)
+
+    @jax.jit
+    def bare_midpoint(y0):
+        # v = M^-1 (p0 + h/2 F(q0 + h/2 v)), iterated until the update is 1e-13 of v.
+        def update(carry, _):
+            q, p = carry
+
+            def not_converged(s):
+                v, v_old, k = s
+                big = jnp.max(jnp.abs(v - v_old)) > 1e-13 * jnp.max(jnp.abs(v))
+                return big & (k < 100)
+
+            def iterate(s):
+                v, _, k = s
+                return (
+                    (p + 0.5 * h * force(q + 0.5 * h * v)) / lagrangian.mass,
+                    v,
+                    k + 1,
+                )
+
+            v, _, _ = jax.lax.while_loop(not_converged, iterate, (p, p + 1.0, 0))
+            return (q + h * v, p + h * force(q + 0.5 * h * v)), None
+
+        return jax.lax.scan(update, y0, None, length=n)[0]
+
+    print(f"\nKepler (2 DOF), compositions and MidpointVI: {n} steps, us per step")
+    t_sv = us(best_time(solve(pair, dvi.StormerVerlet()), y0, repeats=repeats))
+    print(f"  StormerVerlet (compensated)        {t_sv:9.3f} us")
+    for scheme in ("yoshida4", "kahan_li6", "kahan_li8"):
+        solver = dvi.Composition(dvi.StormerVerlet(), scheme)
+        m = len(solver.scheme.coefficients)
+        t = us(best_time(solve(pair, solver), y0, repeats=repeats))
+        print(
+            f"  Composition {scheme:<10} {t:9.3f} us = {t / (m * t_sv):5.2f}x its "
+            f"{m} substeps (target <= 1.3)"
+        )
+    midpoint = solve(term, dvi.MidpointVI())
+    ours, bare = midpoint(y0), bare_midpoint(y0)
+    gap = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(ours, bare))
+    assert gap < 1e-9, f"MidpointVI and the bare implicit midpoint differ by {gap}"
+    t_mid = us(best_time(midpoint, y0, repeats=repeats))
+    t_bare = us(best_time(bare_midpoint, y0, repeats=repeats))
+    print(f"  bare fixed-point implicit midpoint {t_bare:9.3f} us")
+    print(
+        f"  MidpointVI                         {t_mid:9.3f} us = "
+        f"{t_mid / t_bare:5.2f}x the bare midpoint (target <= 1.5; states agree "
+        f"to {gap:.1e})"
+    )
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
+    add_xla_option(parser)
     args = parser.parse_args()
+    setting = apply_xla_option(args)
     print(
         f"jax {jax.__version__}, diffrax {importlib.metadata.version('diffrax')}, "
-        f"device {jax.devices()[0]}"
+        f"device {jax.devices()[0]}, {setting}"
     )
     e = 0.6
     kepler_y0 = (jnp.array([1 - e, 0.0]), jnp.array([0.0, ((1 + e) / (1 - e)) ** 0.5]))
     run("Kepler (2 DOF)", Kepler(), kepler_y0, 2 * jnp.pi / 200, 100_000, args.repeats)
+    small_system(Kepler(), kepler_y0, 2 * jnp.pi / 200, 100_000, args.repeats)
     for n, steps, implicit in [(64, 5_000, True), (4096, 2_000, False)]:
         chain_y0 = (jnp.sin(jnp.linspace(0, jnp.pi, n)), jnp.zeros(n))
         # MidpointVI's dense Newton matrix is too costly to time at 4096 DOF.

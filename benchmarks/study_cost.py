@@ -25,7 +25,7 @@ from diffrax_vi import StormerVerlet  # noqa: E402
 from diffrax_vi.scenes import kepler  # noqa: E402
 from diffrax_vi.study import make_solver, Method  # noqa: E402
 from diffrax_vi.study._track import max_error, TrackWorstError  # noqa: E402
-from step_cost import best_time  # noqa: E402
+from step_cost import add_xla_option, apply_xla_option, best_time  # noqa: E402
 
 
 def main():
@@ -34,7 +34,9 @@ def main():
     parser.add_argument(
         "--solvers", default="StormerVerlet(plain),StormerVerlet,MidpointVI,Tsit5"
     )
+    add_xla_option(parser)
     args = parser.parse_args()
+    print(apply_xla_option(args))
     scene = kepler()
     steps = 200 * args.orbits
     h = scene.period / 200

@@ -15,7 +15,12 @@ import jax.random as jr
 import numpy as np
 import pytest
 from diffrax_vi import scenes
-from diffrax_vi._private_api import NoForwardingSolverMeta, unvmap_any, WrapTerm
+from diffrax_vi._private_api import (
+    backends_are_initialized,
+    NoForwardingSolverMeta,
+    unvmap_any,
+    WrapTerm,
+)
 
 
 def _scene_lagrangians():
@@ -145,6 +150,56 @@ def test_the_users_matplotlib_backend_is_untouched(tmp_path):
     assert (tmp_path / "drift_energy.png").read_bytes()[:4] == b"\x89PNG"
 
 
+SMALL_LOOP_PROGRAM = """
+    import re, jax, jax.numpy as jnp, diffrax as dfx
+    jax.config.update("jax_enable_x64", True)
+    import diffrax_vi as dvi
+    {before}
+    pair = dvi.separable_terms(
+        dvi.SeparableLagrangian(lambda t, q, a: -1 / jnp.sqrt(jnp.sum(q**2)))
+    )
+    solver = dvi.Composition(dvi.StormerVerlet(), "yoshida4")
+    solve = lambda y0: dfx.diffeqsolve(
+        pair, solver, 0.0, 1.0, 0.01, y0, saveat=dfx.SaveAt(t1=True)
+    ).ys
+    y0 = (jnp.array([0.4, 0.0]), jnp.array([0.0, 2.0]))
+    text = jax.jit(solve).lower(y0).compile().as_text()
+    # Loops compiled as one function are called as a "small call".
+    print(len(re.findall('xla_cpu_small_call="true"', text)))
+    {after}
+"""
+
+
+def test_small_loops_compile_whole_only_when_asked():
+    """`compile_small_loops_whole` reaches XLA: the composition's time-stepping loop
+    (over 1 kB with compensated summation) is compiled as one function with it and
+    not without; a second call, or one with the option already in XLA_FLAGS, leaves
+    it alone; a call after JAX has started is an error, not silently ignored."""
+    plain = _run(SMALL_LOOP_PROGRAM.format(before="", after=""), XLA_FLAGS="")
+    assert plain.returncode == 0, plain.stderr
+    asked = _run(
+        SMALL_LOOP_PROGRAM.format(
+            before="assert dvi.compile_small_loops_whole()\n"
+            "    assert not dvi.compile_small_loops_whole()",
+            after="""import os
+    os.environ["XLA_FLAGS"] = ""
+    try:
+        dvi.compile_small_loops_whole(1 << 20)
+    except RuntimeError as e:
+        assert "before JAX starts" in str(e)
+    else:
+        raise AssertionError("no error after the backend started")""",
+        ),
+        XLA_FLAGS="",
+    )
+    assert asked.returncode == 0, asked.stderr
+    # The inner loop over the substeps is small either way; the outer one only with
+    # the threshold raised.
+    assert int(asked.stdout) == int(plain.stdout) + 1, (plain.stdout, asked.stdout)
+    with pytest.raises(ValueError, match="non-negative integer"):
+        dvi.compile_small_loops_whole(-1)
+
+
 def test_python_dash_m_runs_the_command_line():
     out = subprocess.run(
         [sys.executable, "-m", "diffrax_vi", "drift", "--help"],
@@ -182,6 +237,8 @@ def test_private_api_assumptions():
     assert isinstance(dfx.HalfSolver(dfx.Tsit5()), dfx.Tsit5)
     assert issubclass(NoForwardingSolverMeta, type(dfx.AbstractSolver))
     assert type(dvi.AbstractSymplecticSolver) is NoForwardingSolverMeta
+    # JAX's backends_are_initialized: true once anything has run (it has, above).
+    assert backends_are_initialized()
     # equinox's unvmap_any: the `any` over a batch, seen as one value inside vmap.
     out = jax.vmap(lambda x: unvmap_any(x > 0))(jnp.array([-1.0, 2.0]))
     assert out.shape == (2,) and bool(jnp.all(out))

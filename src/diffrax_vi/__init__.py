@@ -45,6 +45,7 @@ from ._term import (
     separable_terms as separable_terms,
     terms_for as terms_for,
 )
+from ._xla import compile_small_loops_whole as compile_small_loops_whole
 
 
 __version__ = importlib.metadata.version("diffrax_vi")

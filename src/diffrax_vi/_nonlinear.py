@@ -286,44 +286,69 @@ class Newton(AbstractVIRootFinder):
     def step(self, fn, y, args, options, state, tags):
         f, lin, scale = jax.linearize(lambda _y: fn(_y, args), y, has_aux=True)
         rho = scaled_norm(f, scale)
-        operator = lx.FunctionLinearOperator(lin, jax.eval_shape(lambda: y), tags=tags)
-        pivot_ratio = state.pivot_ratio
-        if not isinstance(self.linear_solver, str):
-            sol = lx.linear_solve(operator, f, self.linear_solver, throw=False)
-            delta, linear_result = sol.value, sol.result
-        elif self.dense(y):
-            lu_state = lx.LU().init(operator, {})
-            pivot_ratio = _pivot_ratio(lu_state[0][0])
-            sol = lx.linear_solve(operator, f, lx.LU(), state=lu_state, throw=False)
-            delta, linear_result = sol.value, sol.result
-        else:
-            tol = self.tolerance(y)
-            # Eisenstat-Walker choice 2 (gamma = 0.9, alpha = 2), never asking for
-            # more than the Newton tolerance needs.
-            forcing = jnp.clip(
-                0.9 * (rho / state.rho_prev) ** 2,
-                0.5 * tol / jnp.maximum(rho, tol),
-                0.5,
+        # An iterate whose residual is at round-off (after one update: the first
+        # iterate of a Lagrangian quadratic in v, or of a linear step equation) is
+        # the root to working precision; one more solve could not improve it.
+        eps = float(jnp.finfo(tree_dtype(y)).eps)
+        exact = (state.step > 0) & (rho <= 4 * eps)
+
+        def update():
+            operator = lx.FunctionLinearOperator(
+                lin, jax.eval_shape(lambda: y), tags=tags
             )
-            forcing = jnp.where(jnp.isfinite(state.rho_prev), forcing, 0.5)
-            delta, linear_result = krylov_solve(
-                lin,
-                f,
-                forcing,
-                tags,
-                self.krylov_max_steps,
-                options.get("preconditioner"),
-            )
-        if self.damped:
-            y_new = _backtrack(fn, y, args, delta, rho, scale)
-        else:
-            y_new = _subtract(y, delta)
+            pivot_ratio = state.pivot_ratio
+            if not isinstance(self.linear_solver, str):
+                sol = lx.linear_solve(operator, f, self.linear_solver, throw=False)
+                delta, result = sol.value, optx.RESULTS.promote(sol.result)
+            elif self.dense(y):
+                lu_state = lx.LU().init(operator, {})
+                pivot_ratio = _pivot_ratio(lu_state[0][0])
+                sol = lx.linear_solve(operator, f, lx.LU(), state=lu_state, throw=False)
+                delta, result = sol.value, optx.RESULTS.promote(sol.result)
+            else:
+                tol = self.tolerance(y)
+                # Eisenstat-Walker choice 2 (gamma = 0.9, alpha = 2), never asking for
+                # more than the Newton tolerance needs.
+                forcing = jnp.clip(
+                    0.9 * (rho / state.rho_prev) ** 2,
+                    0.5 * tol / jnp.maximum(rho, tol),
+                    0.5,
+                )
+                forcing = jnp.where(jnp.isfinite(state.rho_prev), forcing, 0.5)
+                delta, linear_result = krylov_solve(
+                    lin,
+                    f,
+                    forcing,
+                    tags,
+                    self.krylov_max_steps,
+                    options.get("preconditioner"),
+                )
+                # A Krylov solve breaks down where the Newton matrix is singular or
+                # indefinite, far from a root (a step too large): Newton's method has
+                # failed there, as when a dense factorisation returns inf. Report that,
+                # not lineax's advice to change the linear solver.
+                result = optx.RESULTS.where(
+                    linear_result == lx.RESULTS.successful,
+                    optx.RESULTS.successful,
+                    optx.RESULTS.nonlinear_divergence,
+                )
+            if self.damped:
+                y_new = _backtrack(fn, y, args, delta, rho, scale)
+            else:
+                y_new = _subtract(y, delta)
+            return y_new, pivot_ratio, result
+
+        y_new, pivot_ratio, result = lax.cond(
+            unvmap_any(~exact),
+            update,
+            lambda: (y, state.pivot_ratio, optx.RESULTS.successful),
+        )
         new = NewtonState(
             rho,
             rho,
             pivot_ratio,
             state.step + 1,
-            optx.RESULTS.promote(linear_result),
+            result,
             state.carry,
         )
         return y_new, new, scale

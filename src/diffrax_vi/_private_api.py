@@ -1,16 +1,24 @@
-"""Every private API of diffrax and equinox that this package relies on, in one place.
+"""Every private API of diffrax, equinox and JAX that this package relies on, in one
+place.
 
-`tests/test_private_api.py` checks each assumption made here, so that an upgrade that
-changes one fails there, loudly, rather than somewhere inside a solve.
+`tests/test_surface.py::test_private_api_assumptions` checks each assumption made
+here, so that an upgrade that changes one fails there, loudly, rather than somewhere
+inside a solve.
 """
 
 import diffrax as dfx
 import equinox.internal as eqxi
 from diffrax._term import WrapTerm  # `diffeqsolve` hands solvers this, not our term.
+from jax._src.xla_bridge import backends_are_initialized  # XLA_FLAGS are read then.
 from jaxtyping import ArrayLike, Bool
 
 
-__all__ = ["WrapTerm", "NoForwardingSolverMeta", "unvmap_any"]
+__all__ = [
+    "backends_are_initialized",
+    "NoForwardingSolverMeta",
+    "unvmap_any",
+    "WrapTerm",
+]
 
 
 _SolverMeta = type(dfx.AbstractSolver)

@@ -40,7 +40,7 @@ class Substep(NamedTuple):
     t = 2^30, kahan_li8's energy error on Kepler grew from 2.5e-12 to 2.3e-8 within
     ten orbits)."""
 
-    fraction: float
+    fraction: float | Array
     t0: RealScalarLike
     t1: RealScalarLike
 
@@ -81,7 +81,7 @@ class AbstractSymmetricSolver(dfx.AbstractSolver, **_markers):
 def step_control(term: dfx.AbstractTerm, substep: Substep) -> PyTree:
     """The control (signed step) of a substep, `fraction * contr(t0, t1)`."""
     control = term.contr(substep.t0, substep.t1)
-    if substep.fraction == 1.0:
+    if isinstance(substep.fraction, float) and substep.fraction == 1.0:
         return control
     return jtu.tree_map(lambda c: substep.fraction * c, control)
 

@@ -15,6 +15,8 @@ from typing import ClassVar
 
 import diffrax as dfx
 import equinox as eqx
+import jax.lax as lax
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, PyTree
 
@@ -341,25 +343,46 @@ class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
         made_jump: bool | Bool[ArrayLike, ""],
         substep: Substep,
     ):
+        # The substeps run as an inner scan over the scheme's fractions, not
+        # unrolled: XLA on CPU compiles a loop whose body is small into one function,
+        # and 17 unrolled Stormer-Verlet substeps on Kepler cost 2.1x their separate
+        # steps (1.39 against 17 x 0.039 us) where a scan costs 1.0x.
         gammas = self.scheme.coefficients
-        fractions = np.concatenate([[0.0], np.cumsum(gammas)])
-        ts = [t0 + float(f) * (t1 - t0) for f in fractions]
-        ts[-1] = t1  # exactly, not up to the rounding of the cumulative sum
-        y, state, result = y0, solver_state, dfx.RESULTS.successful
-        for k, gamma in enumerate(gammas):
+        ends = np.cumsum(gammas)
+        starts = np.concatenate([[0.0], ends[:-1]])
+        dtype = jnp.result_type(t0, t1)
+        m = len(gammas)
+        xs = (
+            jnp.asarray(gammas, dtype),
+            jnp.asarray(starts, dtype),
+            jnp.asarray(ends, dtype),
+            jnp.arange(m),
+        )
+
+        def substep_k(carry, x):
+            y, state, result = carry
+            gamma, start, end, k = x
+            # The last substep ends exactly at t1, not at the rounded cumulative sum.
+            ta = t0 + start * (t1 - t0)
+            tb = jnp.where(k == m - 1, t1, t0 + end * (t1 - t0))
             y, _, _, state, sub_result = self.base.fractional_step(
                 terms,
-                ts[k],
-                ts[k + 1],
+                ta,
+                tb,
                 y,
                 args,
                 state,
-                made_jump if k == 0 else False,
-                Substep(substep.fraction * float(gamma), substep.t0, substep.t1),
+                jnp.logical_and(made_jump, k == 0),
+                Substep(substep.fraction * gamma, substep.t0, substep.t1),
             )
             result = dfx.RESULTS.where(
                 result == dfx.RESULTS.successful, sub_result, result
             )
+            return (y, state, result), None
+
+        (y, state, result), _ = lax.scan(
+            substep_k, (y0, solver_state, dfx.RESULTS.successful), xs
+        )
         f0 = self.base.func(terms, t0, y0, args)
         f1 = self.base.func(terms, t1, y, args)
         dense_info = dict(
