@@ -36,6 +36,8 @@ SLOW = (
     "test_solvers.py::test_grad_through_args_and_general_lagrangian",
     "test_solvers.py::test_singular_hessian",  # test_guards.py covers it, two units
     "test_resume.py::test_jump_discards_a_stale_state[LinearizedVI-centered",
+    # the pendulum's cases check the property in the default suite
+    "test_forces_constraints.py::test_symplectic_on_the_constrained_phase_space[four",
 )
 
 

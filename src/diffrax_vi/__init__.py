@@ -1,6 +1,7 @@
 import importlib.metadata
 
 from . import diagnostics as diagnostics, scenes as scenes, study as study
+from ._constraint import project_onto_constraints as project_onto_constraints
 from ._discrete import (
     AbstractDiscreteLagrangian as AbstractDiscreteLagrangian,
     discrete_lagrangian as discrete_lagrangian,

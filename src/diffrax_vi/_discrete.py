@@ -16,6 +16,7 @@ $\partial^2 L/\partial v^2 + O(h)$, well conditioned for small steps.
 """
 
 import abc
+from collections.abc import Callable
 
 import diffrax as dfx
 import equinox as eqx
@@ -25,6 +26,7 @@ import jax.tree_util as jtu
 import optimistix as optx
 
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
+from ._force import applied_force
 from ._lagrangian import AbstractLagrangian, lagrangian_value, momentum_offset
 from ._misc import tree_axpy
 from ._nonlinear import solve
@@ -45,6 +47,20 @@ class AbstractDiscreteLagrangian(eqx.Module):
     ) -> Scalar:
         r"""$\Lambda(q_0, v) = L_d(q_0, q_0 + h v) / h$."""
 
+    @abc.abstractmethod
+    def forces(
+        self,
+        force: Callable[..., P],
+        t0: RealScalarLike,
+        h: RealScalarLike,
+        q0: Q,
+        v: V,
+        args: Args,
+    ) -> tuple[P, P]:
+        r"""The discrete forces $(f^-, f^+)$ of the applied force $F$ on the step:
+        the virtual work $\int F\cdot\delta q\,dt$ by the quadrature the rule uses
+        for $L$ (Marsden & West (2001), §3.2)."""
+
 
 class MidpointRule(AbstractDiscreteLagrangian):
     r"""$L_d(q_0, q_1) = h\,L\big(t_0 + \tfrac h2, \tfrac{q_0 + q_1}2,
@@ -54,6 +70,12 @@ class MidpointRule(AbstractDiscreteLagrangian):
     def average(self, lagrangian, t0, h, q0, v, args):
         q_mid = tree_axpy(0.5 * h, v, q0)
         return lagrangian_value(lagrangian, t0 + 0.5 * h, q_mid, v, args)
+
+    def forces(self, force, t0, h, q0, v, args):
+        q_mid = tree_axpy(0.5 * h, v, q0)
+        f = applied_force(force, t0 + 0.5 * h, q_mid, v, args)
+        half = jtu.tree_map(lambda x: 0.5 * h * x, f)
+        return half, half
 
 
 class TrapezoidalRule(AbstractDiscreteLagrangian):
@@ -66,6 +88,13 @@ class TrapezoidalRule(AbstractDiscreteLagrangian):
             lagrangian_value(lagrangian, t0, q0, v, args)
             + lagrangian_value(lagrangian, t0 + h, q1, v, args)
         )
+
+    def forces(self, force, t0, h, q0, v, args):
+        q1 = tree_axpy(h, v, q0)
+        f0 = applied_force(force, t0, q0, v, args)
+        f1 = applied_force(force, t0 + h, q1, v, args)
+        half = lambda f: jtu.tree_map(lambda x: 0.5 * h * x, f)
+        return half(f0), half(f1)
 
 
 def discrete_lagrangian(
@@ -132,31 +161,47 @@ def average_grads(rule, lagrangian, t0, h, q0, v, args) -> tuple[P, P]:
     return jax.grad(rule.average, argnums=(3, 4))(lagrangian, t0, h, q0, v, args)
 
 
-def step_residual(rule, lagrangian, t0, h, q0, p0, v, args, offset) -> tuple[P, P]:
+def _zero_forces(q0: Q) -> tuple[P, P]:
+    zeros = jtu.tree_map(jnp.zeros_like, q0)
+    return zeros, zeros
+
+
+def step_residual(
+    rule, lagrangian, t0, h, q0, p0, v, args, offset, force=None
+) -> tuple[P, P]:
     r"""The equation of the position–momentum step in the step's velocity $v$,
-    $-D_1 L_d(q_0, q_0 + h v) - p_0 = \partial_v\Lambda - h\,\partial_{q_0}\Lambda
-    - p_0$ (zero on the step: the discrete Legendre transform $p_0 = -D_1 L_d$, the
-    fibre derivative of Hirani (2000), eq. (3.4)), and the size of the momenta it
-    balances (with `offset`, `momentum_offset` at `q0`, computed once per step by the
-    caller, not per Newton iteration). Its Jacobian in $v$ tends to
+    $-D_1 L_d(q_0, q_0 + h v) - f^- - p_0 = \partial_v\Lambda
+    - h\,\partial_{q_0}\Lambda - f^- - p_0$ (zero on the step: the discrete Legendre
+    transform $p_0 = -D_1 L_d$, the fibre derivative of Hirani (2000), eq. (3.4),
+    with the discrete force $f^-$ of an applied `force`), and the size of the
+    momenta it balances (with `offset`, `momentum_offset` at `q0`, computed once per
+    step by the caller, not per Newton iteration). Its Jacobian in $v$ tends to
     $\partial^2 L/\partial v^2$ as $h \to 0$."""
     dq, dv = average_grads(rule, lagrangian, t0, h, q0, v, args)
-    r = jtu.tree_map(lambda p, a, b: b - h * a - p, p0, dq, dv)
+    f_minus, _ = (
+        _zero_forces(q0) if force is None else rule.forces(force, t0, h, q0, v, args)
+    )
+    r = jtu.tree_map(lambda p, a, b, f: b - h * a - f - p, p0, dq, dv, f_minus)
     s = jtu.tree_map(
-        lambda p, a, b, c: jnp.abs(p) + jnp.abs(h * a) + jnp.abs(b) + c,
+        lambda p, a, b, c, f: jnp.abs(p) + jnp.abs(h * a) + jnp.abs(b) + c + jnp.abs(f),
         p0,
         dq,
         dv,
         offset,
+        f_minus,
     )
     return r, s
 
 
-def step_increments(rule, lagrangian, t0, h, q0, v, args) -> tuple[Q, P]:
-    r"""The increments $(q_1 - q_0, p_1 - p_0) = (h v, h\,\partial_{q_0}\Lambda)$ of
-    the step with velocity $v$, where $p_1 = D_2 L_d(q_0, q_1)$."""
+def step_increments(rule, lagrangian, t0, h, q0, v, args, force=None) -> tuple[Q, P]:
+    r"""The increments $(q_1 - q_0, p_1 - p_0) = (h v, h\,\partial_{q_0}\Lambda + f^-
+    + f^+)$ of the step with velocity $v$, where $p_1 = D_2 L_d(q_0, q_1) + f^+$."""
     dl_dq, _ = average_grads(rule, lagrangian, t0, h, q0, v, args)
-    return jtu.tree_map(lambda x: h * x, v), jtu.tree_map(lambda x: h * x, dl_dq)
+    dp = jtu.tree_map(lambda x: h * x, dl_dq)
+    if force is not None:
+        f_minus, f_plus = rule.forces(force, t0, h, q0, v, args)
+        dp = jtu.tree_map(lambda a, b, c: a + b + c, dp, f_minus, f_plus)
+    return jtu.tree_map(lambda x: h * x, v), dp
 
 
 def discrete_hamiltonian_map(

@@ -6,7 +6,9 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 from jaxtyping import ArrayLike, PyTree
 
+from ._constraint import multiplier_force
 from ._custom_types import Args, RealScalarLike
+from ._force import applied_force, depends_on_velocity
 from ._lagrangian import (
     AbstractLagrangian,
     AbstractSeparableLagrangian,
@@ -42,6 +44,14 @@ class LagrangianTerm(dfx.AbstractTerm):
     (`Tsit5`, `Dopri8`, `Kvaerno5`, ...) integrates the same term as the variational
     solvers of this package, which instead read the Lagrangian itself.
 
+    With a `force` $F(t, q, v)$, $\dot p$ gains $F$ (the Lagrange–d'Alembert
+    principle); the variational solvers apply its discrete version. With a
+    `constraint` $g(t, q) = 0$, $\dot p$ gains the constraint force
+    $-G^\top\lambda$, $G = \partial g/\partial q$, with $\lambda$ chosen so that
+    the hidden constraint $G v = 0$ stays constant: the index-reduced equations,
+    along which a Runge–Kutta solver drifts off $g = 0$, while the variational
+    solvers keep $g(q_k) = 0$ and $G v_k = 0$ at every step.
+
     !!! example
 
         ```python
@@ -61,14 +71,33 @@ class LagrangianTerm(dfx.AbstractTerm):
     """
 
     lagrangian: AbstractLagrangian
+    force: Callable[..., PyTree] | None
+    constraint: Callable[..., ArrayLike] | None
 
-    def __init__(self, lagrangian: Callable[..., ArrayLike]):
+    def __init__(
+        self,
+        lagrangian: Callable[..., ArrayLike],
+        force: Callable[..., PyTree] | None = None,
+        constraint: Callable[..., ArrayLike] | None = None,
+    ):
         """**Arguments:**
 
         - `lagrangian`: an [`diffrax_vi.AbstractLagrangian`][], any `eqx.Module`
             with `__call__(t, q, v, args) -> scalar`, or a plain callable of that form.
+        - `force`: an applied generalised force `force(t, q, v, args)` with the
+            structure of `q` (damping, drives; control inputs through `args`), or
+            `None`. An `eqx.Module` force can be differentiated through like the
+            Lagrangian.
+        - `constraint`: holonomic constraints `constraint(t, q, args)`, an array of
+            `m` values that the motion keeps at zero, or `None`. Start from a
+            consistent state: [`diffrax_vi.project_onto_constraints`][].
         """
         self.lagrangian = as_lagrangian(lagrangian)
+        for name, fn in (("force", force), ("constraint", constraint)):
+            if fn is not None and not callable(fn):
+                raise ValueError(f"`{name}` must be callable or None; got {fn!r}.")
+        self.force = force
+        self.constraint = constraint
 
     def hamilton(
         self,
@@ -78,12 +107,21 @@ class LagrangianTerm(dfx.AbstractTerm):
         *,
         v_guess: PyTree | None = None,
     ) -> tuple[tuple[PyTree, PyTree], dfx.RESULTS]:
-        r"""Hamilton's equations $(\dot q, \dot p) = (v, \partial L/\partial q)$ at
-        $y = (q, p)$, and whether the Legendre map could be inverted there (from the
-        guess `v_guess` for a general Lagrangian)."""
+        r"""Hamilton's equations $(\dot q, \dot p) = (v, \partial L/\partial q + F
+        - G^\top\lambda)$ at $y = (q, p)$, and whether the Legendre map could be
+        inverted there (from the guess `v_guess` for a general Lagrangian). $F$ is
+        the applied force, $-G^\top\lambda$ the constraint force of the
+        index-reduced equations (zero without a constraint)."""
         q, p = split_state(y, "y")
         v, result = velocity(self.lagrangian, t, y, args, v_guess=v_guess)
-        return (v, generalised_force(self.lagrangian, t, q, v, args)), result
+        dp = generalised_force(self.lagrangian, t, q, v, args)
+        if self.force is not None:
+            force = applied_force(self.force, t, q, v, args)
+            dp = jtu.tree_map(lambda a, b: a + b, dp, force)
+        if self.constraint is not None:
+            reaction = multiplier_force(self, t, q, p, dp, args)
+            dp = jtu.tree_map(lambda a, b: a + b, dp, reaction)
+        return (v, dp), result
 
     def vf(self, t: RealScalarLike, y: PyTree, args: Args) -> PyTree:
         f, result = self.hamilton(t, y, args)
@@ -117,21 +155,38 @@ class _SeparableVelocity(eqx.Module):
 
 class _SeparableForce(eqx.Module):
     lagrangian: AbstractSeparableLagrangian
+    force: Callable[..., PyTree] | None = None
 
     def __call__(self, t, q, args):
-        return generalised_force(self.lagrangian, t, q, None, args)
+        force = generalised_force(self.lagrangian, t, q, None, args)
+        if self.force is None:
+            return force
+        zeros = jtu.tree_map(jnp.zeros_like, q)
+        if depends_on_velocity(self.force, t, q, zeros, args):
+            raise ValueError(
+                "A partitioned pair (dq/dt = f(p), dp/dt = g(q)), as StormerVerlet "
+                "and SemiImplicitEuler take, has no velocity in dp/dt, but this force "
+                "reads its velocity argument. Integrate "
+                "`LagrangianTerm(L, force=...)` with TrapezoidalVI or MidpointVI "
+                "instead (the discrete Lagrange-d'Alembert principle)."
+            )
+        applied = applied_force(self.force, t, q, zeros, args)
+        return jtu.tree_map(lambda a, b: a + b, force, applied)
 
 
 def separable_terms(
-    lagrangian: AbstractLagrangian,
+    lagrangian: AbstractLagrangian, force: Callable[..., PyTree] | None = None
 ) -> tuple[dfx.ODETerm, dfx.ODETerm]:
     r"""Hamilton's equations of a separable Lagrangian as diffrax's partitioned pair
-    `(ODETerm(dq/dt = M^{-1} p), ODETerm(dp/dt = -dV/dq))`, the calling convention of
-    `diffrax.SemiImplicitEuler` and [`diffrax_vi.StormerVerlet`][].
+    `(ODETerm(dq/dt = M^{-1} p), ODETerm(dp/dt = -dV/dq + F))`, the calling
+    convention of `diffrax.SemiImplicitEuler` and [`diffrax_vi.StormerVerlet`][].
 
     **Arguments:**
 
     - `lagrangian`: an [`diffrax_vi.AbstractSeparableLagrangian`][].
+    - `force`: an applied force `force(t, q, v, args)` of the positions and time
+        alone (it is called with `v = 0`; one that reads `v` raises a `ValueError`
+        when traced), or `None`.
 
     **Returns:**
 
@@ -160,14 +215,15 @@ def separable_terms(
         "a positive mass.",
     )
     return dfx.ODETerm(_SeparableVelocity(mass)), dfx.ODETerm(
-        _SeparableForce(lagrangian)
+        _SeparableForce(lagrangian, force)
     )
 
 
 def terms_for(
-    solver: dfx.AbstractSolver, lagrangian: Callable[..., ArrayLike]
+    solver: dfx.AbstractSolver, lagrangian: Callable[..., ArrayLike] | LagrangianTerm
 ) -> LagrangianTerm | tuple[dfx.ODETerm, dfx.ODETerm]:
-    r"""The terms that `solver` takes for `lagrangian`, ready for
+    r"""The terms that `solver` takes for `lagrangian` (or for a
+    [`diffrax_vi.LagrangianTerm`][] with its force and constraint), ready for
     `diffrax.diffeqsolve(terms, solver, ...)` on the state `y = (q, p)`.
 
     Solvers of partitioned systems ([`diffrax_vi.StormerVerlet`][],
@@ -179,8 +235,8 @@ def terms_for(
     **Arguments:**
 
     - `solver`: any diffrax solver.
-    - `lagrangian`: an [`diffrax_vi.AbstractLagrangian`][] or any callable
-        `L(t, q, v, args)`.
+    - `lagrangian`: an [`diffrax_vi.AbstractLagrangian`][], any callable
+        `L(t, q, v, args)`, or a `LagrangianTerm`.
 
     **Returns:**
 
@@ -189,12 +245,21 @@ def terms_for(
     **Raises:**
 
     `ValueError` if the solver needs a partitioned pair and the Lagrangian is not an
-    [`diffrax_vi.AbstractSeparableLagrangian`][], or if the solver takes some other
-    structure of terms.
+    [`diffrax_vi.AbstractSeparableLagrangian`][] or the term has a constraint, or if
+    the solver takes some other structure of terms.
     """
     structure = solver.term_structure
+    term = lagrangian if isinstance(lagrangian, LagrangianTerm) else None
+    if term is not None:
+        lagrangian = term.lagrangian
     if isinstance(structure, tuple) and len(structure) == 2:
         lagrangian = as_lagrangian(lagrangian)
+        if term is not None and term.constraint is not None:
+            raise ValueError(
+                f"{type(solver).__name__} integrates a partitioned system, which "
+                "cannot keep holonomic constraints. Use TrapezoidalVI (RATTLE for a "
+                "separable Lagrangian) or MidpointVI on the LagrangianTerm."
+            )
         if not isinstance(lagrangian, AbstractSeparableLagrangian):
             raise ValueError(
                 "Partitioned terms exist only for separable Lagrangians "
@@ -206,9 +271,9 @@ def terms_for(
                 "`diffrax_vi.SeparableLagrangian(potential, mass)`, or choose a "
                 "solver of a LagrangianTerm (e.g. `diffrax_vi.TrapezoidalVI()`)."
             )
-        return separable_terms(lagrangian)
+        return separable_terms(lagrangian, None if term is None else term.force)
     if isinstance(structure, type) and issubclass(structure, dfx.AbstractTerm):
-        return LagrangianTerm(lagrangian)
+        return LagrangianTerm(lagrangian) if term is None else term
     raise ValueError(
         f"{type(solver).__name__} takes terms of structure {structure}, which a "
         "Lagrangian does not provide: it gives one LagrangianTerm, or for separable "

@@ -271,6 +271,21 @@ class AbstractImplicitVI(
         definite for the midpoint step of a separable Lagrangian)."""
 
     def method_init(self, step: StepInputs) -> Unknowns:
+        # constrained.py builds on this module's step.
+        from .constrained import init_constrained
+
+        if step.term.constraint is not None:
+            if not self.one_stage:
+                raise ValueError(
+                    f"{type(self).__name__} has several stages, whose positions "
+                    "would need constraints of their own; holonomic constraints are "
+                    "supported by MidpointVI, TrapezoidalVI and compositions of them "
+                    "(for higher order, e.g. "
+                    "`Composition(MidpointVI(), 'kahan_li8')`)."
+                )
+            return init_constrained(
+                step, lambda v: self.stage_guess(step, v), self.root_finder
+            )
         return init_unknowns(
             step, lambda v: self.stage_guess(step, v), self.root_finder
         )
@@ -278,6 +293,18 @@ class AbstractImplicitVI(
     def method_step(
         self, step: StepInputs, state: Unknowns, made_jump: Bool[ArrayLike, ""]
     ) -> MethodStep:
+        from .constrained import constrained_step
+
+        if step.term.constraint is not None:
+            return constrained_step(
+                step,
+                state,
+                made_jump,
+                self.stage_residual,
+                self.stage_increments,
+                self.root_finder,
+                self.root_find_max_steps,
+            )
         return solve_step(
             step,
             state,

@@ -160,6 +160,13 @@ class LinearizedVI(AbstractVariationalSolver):
     def method_init(self, step: StepInputs) -> History:
         """The past, from backward steps of the variational integrator of the same
         discrete Lagrangian: consecutive triples then satisfy its DEL equations."""
+        if step.term.force is not None or step.term.constraint is not None:
+            raise ValueError(
+                "LinearizedVI linearizes the unforced, unconstrained discrete "
+                "Euler-Lagrange equations of Hirani (2000); for a LagrangianTerm "
+                "with a force or a constraint use MidpointVI or TrapezoidalVI (or a "
+                "Composition of them)."
+            )
         q, p, t, h = step.q0, step.p0, step.t0, step.h
         # The start's velocity (the first Newton guess) and a check of the Lagrangian
         # there: the Legendre map must be invertible.

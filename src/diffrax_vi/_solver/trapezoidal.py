@@ -1,11 +1,13 @@
 import diffrax as dfx
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import jax.tree_util as jtu
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._discrete import step_increments, step_residual, TrapezoidalRule
+from .._force import applied_force, depends_on_velocity
 from .._lagrangian import (
     AbstractSeparableLagrangian,
     broadcast_mass,
@@ -20,6 +22,7 @@ from .base import (
     MethodStep,
     StepInputs,
 )
+from .constrained import constrained_step, init_constrained
 from .implicit import IMPLICIT_ARGS_DOC, init_unknowns, solve_step, Unknowns
 from .stormer_verlet import kick_drift_kick, poisoned_force
 
@@ -28,7 +31,54 @@ _RULE = TrapezoidalRule()
 
 
 def _force(step: StepInputs, t, q) -> PyTree:
-    return generalised_force(step.term.lagrangian, t, q, None, step.args)
+    """$-\nabla V$, plus the applied force (of the positions alone, on this path)."""
+    force = generalised_force(step.term.lagrangian, t, q, None, step.args)
+    if step.term.force is None:
+        return force
+    zeros = jtu.tree_map(jnp.zeros_like, q)
+    applied = applied_force(step.term.force, t, q, zeros, step.args)
+    return jtu.tree_map(lambda a, b: a + b, force, applied)
+
+
+def _explicit(step: StepInputs) -> bool:
+    """Whether the step is Störmer–Verlet: a separable Lagrangian, no constraint,
+    and no force or one of the positions and time alone."""
+    term = step.term
+    if term.constraint is not None:
+        return False
+    if not isinstance(term.lagrangian, AbstractSeparableLagrangian):
+        return False
+    return term.force is None or not depends_on_velocity(
+        term.force, step.t0, step.q0, step.p0, step.args
+    )
+
+
+def _residual(step: StepInputs, v) -> tuple[PyTree, PyTree]:
+    return step_residual(
+        _RULE,
+        step.term.lagrangian,
+        step.t0,
+        step.h,
+        step.q0,
+        step.p0,
+        v,
+        step.args,
+        step.momentum_offset,
+        step.term.force,
+    )
+
+
+def _increments(step: StepInputs, v) -> tuple[PyTree, PyTree]:
+    return step_increments(
+        _RULE,
+        step.term.lagrangian,
+        step.t0,
+        step.h,
+        step.q0,
+        v,
+        step.args,
+        step.term.force,
+    )
 
 
 class TrapezoidalVI(
@@ -38,8 +88,10 @@ class TrapezoidalVI(
 
     2nd order symmetric symplectic variational integrator. Explicit (Störmer–Verlet,
     one force evaluation per step) for an
-    [`diffrax_vi.AbstractSeparableLagrangian`][]; one nonlinear solve per step
-    otherwise. Fixed step sizes only. Cubic Hermite interpolation for dense output.
+    [`diffrax_vi.AbstractSeparableLagrangian`][] with no applied force or one of the
+    positions and time alone; RATTLE with holonomic constraints; one nonlinear solve
+    per step otherwise. Fixed step sizes only. Cubic Hermite interpolation for dense
+    output.
 
     Discrete Lagrangian, with $v = (q_1 - q_0)/h$:
 
@@ -75,38 +127,38 @@ class TrapezoidalVI(
 
     def method_init(self, step: StepInputs) -> PyTree:
         lagrangian = step.term.lagrangian
-        if isinstance(lagrangian, AbstractSeparableLagrangian):
+        if _explicit(step):
             y0 = (step.q0, step.p0)
             force = poisoned_force(_force(step, step.t0, step.q0), y0)
             mass = broadcast_mass(lagrangian.mass, step.p0)
             return ExplicitState(force, mass_regular(mass, step.p0))
+        if step.term.constraint is not None:
+            return init_constrained(step, lambda v: v, self.root_finder)
         return init_unknowns(step, lambda v: v, self.root_finder)
 
     def method_step(
         self, step: StepInputs, state: PyTree, made_jump: Bool[ArrayLike, ""]
     ) -> MethodStep:
-        lagrangian = step.term.lagrangian
-        if isinstance(lagrangian, AbstractSeparableLagrangian):
+        if _explicit(step):
             return self._explicit_step(step, state, made_jump)
         assert isinstance(state, Unknowns)
+        if step.term.constraint is not None:
+            # RATTLE, for a separable Lagrangian.
+            return constrained_step(
+                step,
+                state,
+                made_jump,
+                _residual,
+                _increments,
+                self.root_finder,
+                self.root_find_max_steps,
+            )
         return solve_step(
             step,
             state,
             made_jump,
-            lambda v: step_residual(
-                _RULE,
-                lagrangian,
-                step.t0,
-                step.h,
-                step.q0,
-                step.p0,
-                v,
-                step.args,
-                step.momentum_offset,
-            ),
-            lambda v: step_increments(
-                _RULE, lagrangian, step.t0, step.h, step.q0, v, step.args
-            ),
+            lambda v: _residual(step, v),
+            lambda v: _increments(step, v),
             self.root_finder,
             self.root_find_max_steps,
             None,

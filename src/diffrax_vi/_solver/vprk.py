@@ -13,6 +13,11 @@ q_1 = q_0 + h\sum_i b_i V_i,\quad p_1 = p_0 + h\sum_i b_i
 
 with $b_i \bar a_{ij} + b_j a_{ji} = b_i b_j$: the symplecticity condition, which every
 tableau is checked against when it is built.
+
+An applied force $F$ joins $\partial L/\partial q$ at the stages,
+$\partial L/\partial q(Q_j, V_j) + F(t_0 + c_j h, Q_j, V_j)$ in both sums: the
+discrete Lagrange–d'Alembert principle with the forces $f^\pm$ given by the same
+quadrature as $L_d$ (Marsden & West (2001), §3.2).
 """
 
 import dataclasses
@@ -28,6 +33,7 @@ from equinox import AbstractVar
 from jaxtyping import PyTree
 
 from .._custom_types import P, Q, V
+from .._force import applied_force
 from .._lagrangian import (
     AbstractSeparableLagrangian,
     broadcast_mass,
@@ -232,7 +238,16 @@ class AbstractVPRK(AbstractImplicitVI):
             lambda t, q, v: lagrangian_value(step.term.lagrangian, t, q, v, step.args),
             argnums=(1, 2),
         )
-        return jax.vmap(grad)(stage_ts, stage_q, stage_v)
+        dl_dq, dl_dv = jax.vmap(grad)(stage_ts, stage_q, stage_v)
+        force = step.term.force
+        if force is not None:
+            # The forced stage equations: the Lagrange-d'Alembert principle with the
+            # force sampled, like dL/dq, at the stages (Marsden & West (2001), §3.2).
+            applied = jax.vmap(
+                lambda t, q, v: applied_force(force, t, q, v, step.args)
+            )(stage_ts, stage_q, stage_v)
+            dl_dq = jtu.tree_map(lambda a, b: a + b, dl_dq, applied)
+        return dl_dq, dl_dv
 
     def stage_residual(
         self, step: StepInputs, stage_v: PyTree
@@ -276,8 +291,9 @@ class AbstractVPRK(AbstractImplicitVI):
     def jacobian_tags(self, step: StepInputs) -> frozenset:
         # One stage of a separable Lagrangian: J = M - (h^2/4) d2L/dq2, symmetric, and
         # positive definite for steps that resolve the motion.
+        # An applied force adds its own Jacobian, which need not be symmetric.
         separable = isinstance(step.term.lagrangian, AbstractSeparableLagrangian)
-        if separable and self.tableau.stages == 1:
+        if separable and self.tableau.stages == 1 and step.term.force is None:
             return SYMMETRIC_POSITIVE
         return frozenset()
 

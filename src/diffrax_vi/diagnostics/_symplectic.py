@@ -5,7 +5,10 @@ import jax.flatten_util
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
+from .._constraint import constraint_values
 from .._custom_types import Args, RealScalarLike
+from .._lagrangian import velocity
+from .._term import LagrangianTerm
 
 
 @eqx.filter_jit
@@ -40,7 +43,10 @@ def symplecticity_defect(
     r"""$\max|M^\top J M - J|$ for the Jacobian $M$ of one step of `solver` on the
     state `y0 = (q, p)` ([`diffrax_vi.diagnostics.step_jacobian`][]), with
     $J = \begin{pmatrix} 0 & I \\ -I & 0\end{pmatrix}$: zero to round-off for a
-    symplectic step, of the size of the local error for a Runge–Kutta step.
+    symplectic step, of the size of the local error for a Runge–Kutta step. For a
+    [`diffrax_vi.LagrangianTerm`][] with a constraint, $\max|B^\top(M^\top J M -
+    J)B|$ with $B$ an orthonormal basis of the tangent space of the constrained phase
+    space at `y0` (time-independent constraints): symplecticity on that manifold.
 
     **Arguments:**
 
@@ -54,4 +60,27 @@ def symplecticity_defect(
     n = m.shape[0] // 2
     eye, zero = jnp.eye(n, dtype=m.dtype), jnp.zeros((n, n), m.dtype)
     j = jnp.block([[zero, eye], [-eye, zero]])
+    if isinstance(terms, LagrangianTerm) and terms.constraint is not None:
+        # Symplectic on the constrained phase space: on its tangent vectors only.
+        basis = _tangent_basis(terms, y0, args)
+        return float(jnp.max(jnp.abs(basis.T @ (m.T @ j @ m - j) @ basis)))
     return float(jnp.max(jnp.abs(m.T @ j @ m - j)))
+
+
+def _tangent_basis(term: LagrangianTerm, y0: PyTree, args: Args) -> Array:
+    r"""An orthonormal basis of the tangent space at `y0` of the constrained phase
+    space $\{g(q) = 0,\ G(q)\,v(q, p) = 0\}$ (flattened): the null space of the
+    Jacobian of both constraints."""
+    flat, unravel = jax.flatten_util.ravel_pytree(y0)
+
+    def constraints(x):
+        q, p = unravel(x)
+        v, _ = velocity(term.lagrangian, 0.0, (q, p), args)
+        g = lambda q_: constraint_values(term.constraint, 0.0, q_, args)
+        hidden = jax.jvp(g, (q,), (v,))[1]
+        return jnp.concatenate([g(q), hidden])
+
+    jacobian = jax.jacfwd(constraints)(flat)
+    _, s, vt = jnp.linalg.svd(jacobian)
+    rank = jacobian.shape[0]
+    return vt[rank:].T

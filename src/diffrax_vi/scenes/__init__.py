@@ -14,6 +14,18 @@ from ._learned import (
     learned as learned,
     LearnedLagrangian as LearnedLagrangian,
 )
+from ._mechanisms import (
+    cartesian_pendulum as cartesian_pendulum,
+    CartesianPendulumLagrangian as CartesianPendulumLagrangian,
+    Circle as Circle,
+    ControlTorque as ControlTorque,
+    DampedDrive as DampedDrive,
+    forced_duffing as forced_duffing,
+    four_bar as four_bar,
+    FourBarLagrangian as FourBarLagrangian,
+    LoopClosure as LoopClosure,
+    swing_up as swing_up,
+)
 from ._one_dof import (
     duffing as duffing,
     DuffingLagrangian as DuffingLagrangian,
@@ -45,4 +57,6 @@ SCENES = {
     "outer_solar_system": outer_solar_system,
     "learned": learned,
     "bead_wire": bead_wire,
+    "cartesian_pendulum": cartesian_pendulum,
+    "four_bar": four_bar,
 }

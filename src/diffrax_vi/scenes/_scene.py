@@ -7,6 +7,7 @@ import jax.tree_util as jtu
 from jaxtyping import Array, PRNGKeyArray, PyTree
 
 from .._lagrangian import AbstractLagrangian, energy
+from .._term import LagrangianTerm
 
 
 class Scene(eqx.Module):
@@ -25,17 +26,32 @@ class Scene(eqx.Module):
         by [`diffrax_vi.scenes.Scene.conserved`][].
     - `exact`: the exact solution from `y0`, `fn(t) -> (q, p)`, or `None` where none
         is known in closed form.
+    - `force`: the applied force `force(t, q, v, args)`, or `None`.
+    - `constraint`: the holonomic constraints `constraint(t, q, args)`, or `None`.
+    - `args`: the default `args` of a solve (a control sequence, say), or `None`.
     """
 
     name: str = eqx.field(static=True)
     lagrangian: AbstractLagrangian
     y0: tuple[PyTree[Array], PyTree[Array]]
     period: float = eqx.field(static=True)
-    invariants: dict[str, Callable] = eqx.field(static=True, default_factory=dict)
+    invariants: dict[str, Callable] = eqx.field(default_factory=dict)
     exact: Callable | None = eqx.field(static=True, default=None)
+    force: Callable | None = None
+    constraint: Callable | None = None
+    args: PyTree = None
+
+    def term(self) -> LagrangianTerm:
+        """The scene's [`diffrax_vi.LagrangianTerm`][], with its force and
+        constraint."""
+        return LagrangianTerm(self.lagrangian, self.force, self.constraint)
 
     def conserved(self) -> dict[str, Callable]:
-        """Every conserved quantity, energy first, as `fn(t, y, args) -> array`."""
+        """Every conserved quantity, energy first, as `fn(t, y, args) -> array`. With
+        an applied force the energy is not conserved, and only `invariants` are
+        listed (the drift study checks the energy balance instead)."""
+        if self.force is not None:
+            return dict(self.invariants)
         lagrangian = self.lagrangian
 
         def _energy(t, y, args):

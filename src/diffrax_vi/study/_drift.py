@@ -178,6 +178,13 @@ def check_drift(
 ) -> int:
     """Check a drift study's settings before any work (see
     [`diffrax_vi.study.drift`][]'s **Raises**); returns the number of fixed steps."""
+    if scene.force is not None:
+        raise ValueError(
+            f"The scene {scene.name!r} has an applied force, so its energy is not "
+            "conserved, and the drift study does not yet measure the energy balance "
+            "E(t) - E(0) - W(t). Integrate it with diffeqsolve and "
+            "`scene.term()` (see examples/swing_up.py)."
+        )
     n_steps = step_count(periods, steps_per_period)
     if isinstance(n_save, bool) or int(n_save) != n_save or n_steps % n_save:
         raise ValueError(

@@ -60,7 +60,7 @@ class Method:
     def terms(self, scene: Scene):
         """The scene's terms as this solver takes them
         ([`diffrax_vi.terms_for`][])."""
-        return terms_for(self.solver, scene.lagrangian)
+        return terms_for(self.solver, scene.term())
 
 
 def make_solver(name: str) -> dfx.AbstractSolver:

@@ -1,0 +1,263 @@
+r"""Holonomic constraints $g(t, q) = 0$ ($m$ values): their Jacobian $G = \partial g /
+\partial q$, the hidden constraint on the momenta, and the projections onto both.
+
+A constrained motion satisfies $g(t, q) = 0$ and, differentiating once, the hidden
+constraint $G(q)\,v(q, p) = 0$ (for constraints that do not depend on time): the
+state lives on a submanifold of phase space of dimension $2(n - m)$. The constraint
+forces $-G^\top\lambda$ keep it there (Marsden & West (2001), §3.5; Hairer, Lubich &
+Wanner (2006), VII.1).
+
+Every tolerance here is relative to the terms the equation balances (for $g$, the
+linearised sizes $|G|\,|q|$), so that it does not depend on the units.
+"""
+
+from collections.abc import Callable
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import lineax as lx
+from jaxtyping import Array, Float, PyTree
+
+from ._custom_types import Args, P, Q, RealScalarLike
+from ._lagrangian import velocity
+from ._misc import all_finite, split_state, state_dtype
+from ._nonlinear import Newton, newton_tolerance, scaled_norm, singular_threshold, solve
+
+
+def constraint_values(
+    constraint: Callable[..., PyTree], t: RealScalarLike, q: Q, args: Args
+) -> Float[Array, " m"]:
+    """`g(t, q, args)` as a flat array, checked at trace time to be real floating."""
+    out = jnp.asarray(constraint(t, q, args))
+    if not jnp.issubdtype(out.dtype, jnp.floating):
+        raise ValueError(
+            f"The constraint must return real floating values g(t, q, args), got "
+            f"dtype {out.dtype}."
+        )
+    if out.size == 0:
+        raise ValueError(
+            "The constraint returned no values: pass `constraint=None` for an "
+            "unconstrained system."
+        )
+    return jnp.ravel(out).astype(state_dtype(q))
+
+
+def constraint_jacobian(
+    constraint: Callable[..., PyTree], t: RealScalarLike, q: Q, args: Args
+) -> Float[Array, "m n"]:
+    """$G = \\partial g / \\partial q$ as a dense `(m, n)` matrix over the flattened
+    positions (one reverse pass per constraint)."""
+    flat, unravel = jax.flatten_util.ravel_pytree(q)
+    return jax.jacrev(lambda x: constraint_values(constraint, t, unravel(x), args))(
+        flat
+    )
+
+
+def transpose_product(
+    constraint: Callable[..., PyTree], t: RealScalarLike, q: Q, args: Args
+) -> Callable[[Array], P]:
+    """`lam -> G(q)^T lam`, a generalised force with the structure of `q`."""
+    _, vjp = jax.vjp(lambda x: constraint_values(constraint, t, x, args), q)
+    return lambda lam: vjp(lam)[0]
+
+
+def constraint_scale(jacobian: Array, q: Q) -> Float[Array, " m"]:
+    """$|G|\\,|q|$: the size of the terms a constraint value balances, to which its
+    residual is compared."""
+    flat = jax.flatten_util.ravel_pytree(q)[0]
+    return jnp.abs(jacobian) @ jnp.abs(flat)
+
+
+def _flat(tree: PyTree) -> Array:
+    return jax.flatten_util.ravel_pytree(tree)[0]
+
+
+def constraint_rate(
+    constraint: Callable[..., PyTree], t: RealScalarLike, q: Q, args: Args
+) -> Float[Array, " m"]:
+    """$\\partial g/\\partial t$ (zero for a constraint independent of time)."""
+    dtype = state_dtype(q)
+    return jax.jvp(
+        lambda s: constraint_values(constraint, s, q, args),
+        (jnp.asarray(t, dtype),),
+        (jnp.ones((), dtype),),
+    )[1]
+
+
+def hidden_constraint(jacobian: Array, v: PyTree, rate: Array) -> tuple[Array, Array]:
+    """The hidden constraint $G v + \\partial g/\\partial t$ and its scale
+    $|G|\\,|v| + |\\partial g/\\partial t|$."""
+    flat = _flat(v)
+    return jacobian @ flat + rate, jnp.abs(jacobian) @ jnp.abs(flat) + jnp.abs(rate)
+
+
+def rank_ok(jacobian: Array) -> Array:
+    """Whether $G$ has full row rank to working precision (its singular values)."""
+    m, n = jacobian.shape
+    if m > n:
+        return jnp.array(False)
+    s = jnp.linalg.svd(jacobian, compute_uv=False)
+    return (s[-1] > singular_threshold(n, jacobian.dtype) * s[0]) & jnp.all(
+        jnp.isfinite(s)
+    )
+
+
+class Projected(eqx.Module):
+    """A momentum projected onto the hidden constraint, the constraint impulse
+    $-G^\\top\\mu$ that moved it there, and whether the projection succeeded."""
+
+    p: P
+    impulse: P
+    result: dfx.RESULTS
+
+
+def project_momentum(
+    term,
+    t: RealScalarLike,
+    q: Q,
+    p: P,
+    args: Args,
+    jacobian: Array | None = None,
+) -> Projected:
+    r"""$p - G(q)^\top\mu$ with $\mu$ such that $G(q)\,v(q, p - G^\top\mu)
+    + \partial g/\partial t = 0$: the momentum on the hidden constraint (RATTLE's
+    projection, Hairer, Lubich & Wanner (2006), VII.1.4). Newton's method on $\mu$;
+    for a Lagrangian quadratic in the velocity the equation is linear, and one
+    iteration solves it."""
+    g = term.constraint
+    if jacobian is None:
+        jacobian = constraint_jacobian(g, t, q, args)
+    rate = constraint_rate(g, t, q, args)
+    push = transpose_product(g, t, q, args)
+    m = jacobian.shape[0]
+
+    def impulse(mu):
+        return jtu.tree_map(jnp.negative, push(mu))
+
+    def residual(mu):
+        moved = jtu.tree_map(lambda a, b: a + b, p, impulse(mu))
+        v, _ = velocity(term.lagrangian, t, (q, moved), args)
+        return hidden_constraint(jacobian, v, rate)
+
+    solved = solve(residual, jnp.zeros((m,), state_dtype(p)), Newton(), 16)
+    kick = impulse(solved.value)
+    return Projected(jtu.tree_map(lambda a, b: a + b, p, kick), kick, solved.result)
+
+
+def project_onto_constraints(
+    term, t0: RealScalarLike, y0: tuple[Q, P], args: Args = None
+) -> tuple[tuple[Q, P], dfx.RESULTS]:
+    r"""Consistent initial data for a constrained [`diffrax_vi.LagrangianTerm`][]: the
+    state nearest to `y0` with $g(t_0, q) = 0$ and $G(q)\,v(q, p) = 0$.
+
+    The positions move along the constraint normals at `q0`,
+    $q = q_0 + G(q_0)^\top\lambda$, with $\lambda$ from Newton's method on
+    $g(q) = 0$ (to first order the Euclidean projection); the momentum is then
+    projected onto the hidden constraint, $p = p_0 - G(q)^\top\mu$ (the projection of
+    the velocity in the metric $\partial^2 L/\partial v^2$).
+
+    **Arguments:**
+
+    - `term`: a [`diffrax_vi.LagrangianTerm`][] with a `constraint`.
+    - `t0`, `y0 = (q0, p0)`, `args`: as for `diffeqsolve`.
+
+    **Returns:**
+
+    `((q, p), result)`, `result` a `diffrax.RESULTS`: successful, or why Newton's
+    method failed (a constraint Jacobian that loses rank, a `y0` too far from the
+    constraint manifold for Newton's method to reach it).
+
+    **Raises:**
+
+    `ValueError` if the term has no constraint.
+    """
+    if term.constraint is None:
+        raise ValueError(
+            "project_onto_constraints needs a LagrangianTerm with a constraint: "
+            "`LagrangianTerm(L, constraint=g)`."
+        )
+    q0, p0 = split_state(y0)
+    g = term.constraint
+    push = transpose_product(g, t0, q0, args)
+    m = constraint_values(g, t0, q0, args).shape[0]
+    jacobian0 = constraint_jacobian(g, t0, q0, args)
+
+    def moved(lam):
+        return jtu.tree_map(lambda a, b: a + b, q0, push(lam))
+
+    def residual(lam):
+        q = moved(lam)
+        return constraint_values(g, t0, q, args), constraint_scale(jacobian0, q)
+
+    solved = solve(residual, jnp.zeros((m,), state_dtype(q0)), Newton(), 32)
+    q = moved(solved.value)
+    projected = project_momentum(term, t0, q, p0, args)
+    ok = rank_ok(jacobian0)
+    result = dfx.RESULTS.where(ok, solved.result, dfx.RESULTS.singular)
+    result = dfx.RESULTS.where(
+        result == dfx.RESULTS.successful, projected.result, result
+    )
+    return (q, projected.p), result
+
+
+OFF_MANIFOLD = (
+    "y0 is not on the constraint manifold: |g(t0, q0)| or the hidden constraint "
+    "|G(q0) v(q0, p0)| exceeds sqrt(eps) of the terms it balances, so a constrained "
+    "solver would first jump onto it and every invariant would be wrong. Start from "
+    "`diffrax_vi.project_onto_constraints(term, t0, y0, args)[0]`."
+)
+
+RANK_DEFICIENT = (
+    "The constraint Jacobian dg/dq at q0 does not have full row rank to working "
+    "precision: the constraints are redundant (remove the dependent ones) or q0 is a "
+    "singular configuration of the mechanism."
+)
+
+
+def check_start(
+    term, t: RealScalarLike, q: Q, p: P, v: PyTree, args: Args, value: PyTree
+) -> PyTree:
+    """`value`, or an error if the start is off the constraint manifold (beyond
+    $\\sqrt{\\varepsilon}$ relative) or the constraint Jacobian loses rank there."""
+    g = term.constraint
+    jacobian = constraint_jacobian(g, t, q, args)
+    values = constraint_values(g, t, q, args)
+    tol = newton_tolerance(state_dtype(q)) ** 0.5
+    hidden = hidden_constraint(jacobian, v, constraint_rate(g, t, q, args))
+    off = (scaled_norm(values, constraint_scale(jacobian, q)) > tol) | (
+        scaled_norm(*hidden) > tol
+    )
+    value = eqx.error_if(value, ~rank_ok(jacobian) & all_finite(q), RANK_DEFICIENT)
+    return eqx.error_if(value, off & all_finite((q, p, v)), OFF_MANIFOLD)
+
+
+def multiplier_force(term, t, q: Q, p: P, force: P, args: Args) -> P:
+    r"""The constraint force $-G^\top\lambda$ of the index-reduced equations of motion:
+    $\lambda$ such that the hidden constraint $G(q)\,v(q, p) + \partial g/\partial t$
+    stays constant along $(\dot q, \dot p) = (v, f - G^\top\lambda)$, where $f$ is
+    the rest of $\dot p$. An $m\times m$ linear solve with
+    $G\,(\partial^2 L/\partial v^2)^{-1}G^\top$."""
+    g = term.constraint
+    dtype = state_dtype(q)
+    t = jnp.asarray(t, dtype)
+    one, zero = jnp.ones((), dtype), jnp.zeros((), dtype)
+    push = transpose_product(g, t, q, args)
+    m = constraint_values(g, t, q, args).shape[0]
+
+    def hidden(t_, q_, p_):
+        v, _ = velocity(term.lagrangian, t_, (q_, p_), args)
+        return jax.jvp(
+            lambda s, x: constraint_values(g, s, x, args), (t_, q_), (one, v)
+        )[1]
+
+    v, _ = velocity(term.lagrangian, t, (q, p), args)
+    _, b = jax.jvp(hidden, (t, q, p), (one, v, force))
+    zeros_q = jtu.tree_map(jnp.zeros_like, q)
+    matvec = lambda lam: jax.jvp(hidden, (t, q, p), (zero, zeros_q, push(lam)))[1]
+    operator = lx.FunctionLinearOperator(matvec, jax.ShapeDtypeStruct((m,), dtype))
+    lam = lx.linear_solve(operator, b, lx.LU(), throw=False).value
+    return jtu.tree_map(jnp.negative, push(lam))

@@ -1,0 +1,127 @@
+r"""Holonomic constraints in a one-step variational integrator: the step's equations
+with their multipliers, then RATTLE's projection of the momentum.
+
+For constraints $g(q) = 0$ with Jacobian $G$, the constrained discrete
+Lagrange–d'Alembert principle in position–momentum form is (Marsden & West (2001),
+§3.5; Hairer, Lubich & Wanner (2006), VII.1.4; Leyendecker, Marsden & Ortiz (2008))
+
+$$p_0 = -D_1 L_d(q_0, q_1) - f^-_0 - G(q_0)^\top\lambda,\qquad g(q_1) = 0,$$
+$$p_1 = D_2 L_d(q_0, q_1) + f^+_0 - G(q_1)^\top\mu,\qquad G(q_1)\,v(q_1, p_1) = 0.$$
+
+The first line is the unconstrained step's equation with $p_0$ shifted by the impulse
+$G(q_0)^\top\lambda$: the step's unknowns and $\lambda$ are solved together, one
+Newton system. The second projects the momentum onto the hidden constraint. For the
+trapezoidal $L_d$ of a separable Lagrangian this is RATTLE. The step is symmetric
+when the unconstrained one is (so compositions raise its order) and symplectic on the
+constrained phase space $\{g(q) = 0,\ G(q)\,v(q, p) = 0\}$.
+"""
+
+from collections.abc import Callable
+
+import diffrax as dfx
+import equinox as eqx
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import optimistix as optx
+from jaxtyping import ArrayLike, Bool, PyTree
+
+from .._constraint import (
+    check_start as check_constraint_start,
+    constraint_jacobian,
+    constraint_scale,
+    constraint_values,
+    project_momentum,
+    transpose_product,
+)
+from .._custom_types import P, Q
+from .._misc import tree_axpy
+from .._nonlinear import AbstractVIRootFinder
+from .base import MethodStep, StepInputs
+from .implicit import check_start, solve_step, Unknowns
+
+
+def _add(a: PyTree, b: PyTree) -> PyTree:
+    return jtu.tree_map(lambda x, y: x + y, a, b)
+
+
+def init_constrained(
+    step: StepInputs, stage_guess: Callable[[PyTree], PyTree], root_finder
+) -> Unknowns:
+    """The state of a constrained implicit method before its first step: the
+    unconstrained unknowns and the multipliers (zero), after checking that the start
+    lies on the constraint manifold."""
+    start = check_start(step)
+    m = constraint_values(step.term.constraint, step.t0, step.q0, step.args).shape[0]
+    guess = (stage_guess(start.v0), jnp.zeros((m,), step.dtype))
+    guess = check_constraint_start(
+        step.term, step.t0, step.q0, step.p0, start.v0, step.args, guess
+    )
+    carry = (
+        root_finder.carry_init(guess)
+        if isinstance(root_finder, AbstractVIRootFinder)
+        else None
+    )
+    return Unknowns(guess, guess, carry, start.positive)
+
+
+def constrained_step(
+    step: StepInputs,
+    state: Unknowns,
+    made_jump: Bool[ArrayLike, ""],
+    residual_at: Callable[[StepInputs, PyTree], tuple[PyTree, PyTree]],
+    increments_at: Callable[[StepInputs, PyTree], tuple[Q, P]],
+    root_finder: optx.AbstractRootFinder | None,
+    max_steps: int,
+) -> MethodStep:
+    """One constrained step of the method whose unconstrained equations and increments
+    are `residual_at(step, w)` and `increments_at(step, w)`."""
+    g, t0, t1, q0, args = (
+        step.term.constraint,
+        step.t0,
+        step.t1,
+        step.q0,
+        step.args,
+    )
+    push = transpose_product(g, t0, q0, args)
+    jacobian0 = constraint_jacobian(g, t0, q0, args)
+
+    def shifted(lam) -> StepInputs:
+        return eqx.tree_at(lambda s: s.p0, step, _add(step.p0, push(lam)))
+
+    def residual(unknowns):
+        w, lam = unknowns
+        moved = shifted(lam)
+        r, s = residual_at(moved, w)
+        dq, _ = increments_at(moved, w)
+        q1 = _add(q0, dq)
+        return (r, constraint_values(g, t1, q1, args)), (
+            s,
+            constraint_scale(jacobian0, q1),
+        )
+
+    def increments(unknowns):
+        w, lam = unknowns
+        dq, dp = increments_at(shifted(lam), w)
+        return dq, _add(dp, push(lam))
+
+    out = solve_step(
+        step,
+        state,
+        made_jump,
+        residual,
+        increments,
+        root_finder,
+        max_steps,
+        None,
+        frozenset(),
+        # The joint Jacobian of a saddle-point system is indefinite: no curvature test.
+        False,
+    )
+    q1 = _add(q0, out.dq)
+    projected = project_momentum(
+        step.term, t1, q1, tree_axpy(1.0, out.dp, step.p0), args
+    )
+    result = dfx.RESULTS.where(
+        out.result == dfx.RESULTS.successful, projected.result, out.result
+    )
+    return MethodStep(out.dq, _add(out.dp, projected.impulse), out.v, out.state, result)
