@@ -58,7 +58,7 @@ def long_run(scene, solver, steps, h):
         return (
             energy(t, y, args),
             residuals["constraint"](t, y, args),
-            residuals["hidden constraint"](t, y, args),
+            residuals["hidden_constraint"](t, y, args),
         )
 
     @jax.jit

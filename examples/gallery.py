@@ -65,6 +65,19 @@ STUDIES = {
     ),
     "learned": (["MidpointVI", "StormerVerlet", "Tsit5"], 1000, 50, None),
     "bead_wire": (["MidpointVI", "GaussVPRK2", "Tsit5", "Dopri8"], 200, 40, None),
+    "forced_duffing": (
+        ["MidpointVI", "TrapezoidalVI", "GaussVPRK2", "Tsit5", "Dopri8"],
+        100,
+        50,
+        None,
+    ),
+    "cartesian_pendulum": (
+        ["TrapezoidalVI", "MidpointVI", "Tsit5", "Dopri8"],
+        1000,
+        50,
+        None,
+    ),
+    "four_bar": (["MidpointVI", "Tsit5", "Dopri8"], 200, 50, None),
 }
 
 

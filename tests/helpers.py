@@ -76,8 +76,13 @@ KEPLER = dvi.SeparableLagrangian(lambda t, q, args: -1 / jnp.sqrt(jnp.sum(q**2))
 
 
 def reference(lagrangian, y0, t1, t0=0.0, args=None):
-    """The state at `t1` from scipy's DOP853 at rtol 1e-13 on Hamilton's equations."""
-    term = dvi.LagrangianTerm(lagrangian)
+    """The state at `t1` from scipy's DOP853 at rtol 1e-13 on Hamilton's equations
+    of a Lagrangian, or of a `LagrangianTerm` with its force and constraint."""
+    term = (
+        lagrangian
+        if isinstance(lagrangian, dvi.LagrangianTerm)
+        else dvi.LagrangianTerm(lagrangian)
+    )
     flat, unravel = jax.flatten_util.ravel_pytree(y0)
     rhs = jax.jit(
         lambda t, x: jax.flatten_util.ravel_pytree(term.vf(t, unravel(x), args))[0]

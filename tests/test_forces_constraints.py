@@ -2,6 +2,8 @@
 (the constrained discrete Euler–Lagrange equations with RATTLE's projection), against
 exact solutions, scipy references and the discrete Noether theorem with forcing."""
 
+import functools
+
 import diffrax as dfx
 import diffrax_vi as dvi
 import equinox as eqx
@@ -9,7 +11,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scipy.integrate
 from diffrax_vi import scenes
+from diffrax_vi.study import drift
 
 from .helpers import fitted_order, max_abs_diff, reference
 
@@ -261,7 +265,7 @@ def _constraint_history(scene, solver, h, n):
         return (
             energy(t, y, args),
             residuals["constraint"](t, y, args),
-            residuals["hidden constraint"](t, y, args),
+            residuals["hidden_constraint"](t, y, args),
             y[0],
         )
 
@@ -417,6 +421,10 @@ def test_jit_vmap_grad_through_forced_and_constrained_solves():
     eps = 1e-5
     fd = (final_x(1.0 + eps) - final_x(1.0 - eps)) / (2 * eps)
     assert abs(float(grad) - float(fd)) < 1e-7 * max(1.0, abs(float(fd)))
+    # vmap over gravities equals a loop
+    gs = jnp.array([0.5, 1.0, 2.0])
+    batched = jax.jit(jax.vmap(final_x))(gs)
+    assert max_abs_diff(batched, jnp.stack([final_x(g) for g in gs])) < 1e-13
 
     # vmap over damping coefficients equals a loop
     def final_q(c):
@@ -466,3 +474,105 @@ def test_swing_up_control_through_the_forced_solver():
     # It had to swing: the torque alone (at most 0.5 of the weight) cannot lift it.
     torques = scene.force.max_torque * jnp.tanh(controls)
     assert float(jnp.max(jnp.abs(torques))) <= 0.5
+
+
+# The drift study on forced and constrained scenes.
+
+
+@functools.cache
+def _work_reference() -> tuple[float, float]:
+    """The forced Duffing's first drive period, and W = int F . v dt over it along
+    the motion from scipy's DOP853 at rtol 1e-13 on Hamilton's equations augmented by
+    dW/dt = F . v (independent of any method's discrete forces)."""
+    scene = scenes.forced_duffing()
+    term = scene.term()
+
+    @jax.jit
+    def rhs(t, x):
+        (dq, dp), _ = term.hamilton(t, (x[0], x[1]), None)
+        return jnp.stack([dq, dp, scene.force(t, x[0], dq, None) * dq])
+
+    q0, p0 = scene.y0
+    sol = scipy.integrate.solve_ivp(
+        lambda t, x: np.asarray(rhs(t, jnp.asarray(x))),
+        (0.0, scene.period),
+        [float(q0), float(p0), 0.0],
+        "DOP853",
+        rtol=1e-13,
+        atol=1e-13,
+    )
+    assert sol.success
+    return scene.period, float(sol.y[2, -1])
+
+
+@eqx.filter_jit
+def _final_work(solver, h):
+    scene = scenes.forced_duffing()
+    sol = dfx.diffeqsolve(
+        scene.term(),
+        solver,
+        0.0,
+        scene.period,
+        h,
+        scene.y0,
+        saveat=dfx.SaveAt(t1=True, solver_state=True),
+        max_steps=256,
+    )
+    return sol.solver_state.work
+
+
+@pytest.mark.parametrize(
+    "name,solver,order",
+    [
+        ("MidpointVI", dvi.MidpointVI(), 2),
+        ("TrapezoidalVI", dvi.TrapezoidalVI(), 2),
+        ("GaussVPRK(2)", dvi.GaussVPRK(2), 4),
+        (
+            "yoshida4(TrapezoidalVI)",
+            dvi.Composition(dvi.TrapezoidalVI(), "yoshida4"),
+            4,
+        ),
+    ],
+)
+def test_discrete_work_converges_at_the_methods_order(name, solver, order):
+    """The work of a method's discrete forces, kept in its state for the energy
+    balance, converges to the work of the force along the exact motion at the
+    method's order (a composition's substeps add theirs)."""
+    t1, reference = _work_reference()
+    hs = [t1 / 16, t1 / 32, t1 / 64]
+    errors = [abs(float(_final_work(solver, jnp.asarray(h))) - reference) for h in hs]
+    assert abs(fitted_order(hs, errors) - order) < 0.3, errors
+
+
+def test_drift_study_reports_the_energy_balance_of_a_forced_scene():
+    scene = scenes.forced_duffing()
+    methods = ["MidpointVI", "GaussVPRK2", "Tsit5"]
+    coarse, fine = (
+        drift(scene, methods, periods=2, steps_per_period=spp, n_save=2)
+        for spp in (40, 80)
+    )
+    assert coarse.energy == "energy_balance" and "energy" not in coarse.invariants
+    for a, b, order in zip(coarse.runs, fine.runs, (2, 4, 5)):
+        assert a.result == b.result == "successful"
+        ratio = a.max_error("energy_balance") / b.max_error("energy_balance")
+        # The balance error falls at the method's order (within a factor of 2**0.6).
+        assert 2 ** (order - 0.6) < ratio < 2 ** (order + 0.6), (a.solver, ratio)
+    assert "energy-balance error" in coarse.verdict()
+    with pytest.raises(ValueError, match="StormerVerlet integrate"):
+        drift(scene, ["StormerVerlet"], periods=1, steps_per_period=20)
+
+
+def test_drift_study_reports_constraint_residuals():
+    study = drift(
+        scenes.cartesian_pendulum(),
+        ["TrapezoidalVI", "Tsit5"],
+        periods=20,
+        steps_per_period=40,
+        n_save=10,
+    )
+    vi, rk = study.runs
+    assert study.invariants == ["energy", "constraint", "hidden_constraint"]
+    for name in ("constraint", "hidden_constraint"):
+        assert vi.max_error(name) < 1e-13
+        assert rk.max_error(name) > 1e-5
+    assert rk.growth("constraint") > 5

@@ -220,6 +220,10 @@ def test_cli_end_to_end(tmp_path, capsys):
             ["drift", "--scene", "double_pendulum", "--solvers", "StormerVerlet"],
             "Partitioned terms exist only",
         ),
+        (
+            ["drift", "--scene", "forced_duffing", "--solvers", "MidpointVI,KahanLi8"],
+            "KahanLi8 integrate(s) partitioned terms",
+        ),
         (["work-precision", "--rtols", "tight"], "--rtols: a tolerance must be a"),
         (["work-precision", "--rtols", ""], "names no value"),
         (["work-precision", "--steps-per-period", "10,-5"], "a count must be"),

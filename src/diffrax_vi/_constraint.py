@@ -23,7 +23,7 @@ import lineax as lx
 from jaxtyping import Array, Float, PyTree
 
 from ._custom_types import Args, P, Q, RealScalarLike
-from ._lagrangian import velocity
+from ._lagrangian import momentum, velocity
 from ._misc import all_finite, split_state, state_dtype
 from ._nonlinear import Newton, newton_tolerance, scaled_norm, singular_threshold, solve
 
@@ -235,29 +235,51 @@ def check_start(
     return eqx.error_if(value, off & all_finite((q, p, v)), OFF_MANIFOLD)
 
 
-def multiplier_force(term, t, q: Q, p: P, force: P, args: Args) -> P:
-    r"""The constraint force $-G^\top\lambda$ of the index-reduced equations of motion:
-    $\lambda$ such that the hidden constraint $G(q)\,v(q, p) + \partial g/\partial t$
-    stays constant along $(\dot q, \dot p) = (v, f - G^\top\lambda)$, where $f$ is
-    the rest of $\dot p$. An $m\times m$ linear solve with
-    $G\,(\partial^2 L/\partial v^2)^{-1}G^\top$."""
+def multiplier_force(
+    term, t, q: Q, p: P, v: PyTree, force: P, args: Args
+) -> tuple[P, dfx.RESULTS]:
+    r"""The constraint force $-G^\top\lambda$ of the index-reduced equations of motion
+    at $(q, p)$ with velocity $v$: $\lambda$ such that the hidden constraint
+    $G(q)\,v + \partial g/\partial t$ stays constant along
+    $(\dot q, \dot p) = (v, f - G^\top\lambda)$, where $f$ is the rest of $\dot p$.
+
+    With $W = (\partial^2 L/\partial v^2)^{-1}$, $\dot v = W(\dot p - m)$ where $m$
+    is the derivative of $\partial L/\partial v$ along $(\dot t, \dot q) = (1, v)$,
+    so $(G W G^\top)\lambda = G W (f - m) + c$ with $c$ the second derivative of $g$
+    along $(1, v)$. Only forward linear solves (no derivative of a solve is taken,
+    whose tangent solves lineax always checks), and a `RESULTS.singular` where
+    $G W G^\top$ cannot be solved (a Jacobian losing rank)."""
     g = term.constraint
+    lagrangian = term.lagrangian
     dtype = state_dtype(q)
     t = jnp.asarray(t, dtype)
-    one, zero = jnp.ones((), dtype), jnp.zeros((), dtype)
-    push = transpose_product(g, t, q, args)
-    m = constraint_values(g, t, q, args).shape[0]
+    one = jnp.ones((), dtype)
+    flat_v, unravel = jax.flatten_util.ravel_pytree(v)
 
-    def hidden(t_, q_, p_):
-        v, _ = velocity(term.lagrangian, t_, (q_, p_), args)
+    def dl_dv(t_, q_, v_):
+        return _flat(momentum(lagrangian, t_, q_, v_, args))
+
+    # W applied to the columns of G^T and to f - m.
+    hessian = jax.jacfwd(lambda x: dl_dv(t, q, unravel(x)))(flat_v)
+    mixed = jax.jvp(lambda t_, q_: dl_dv(t_, q_, v), (t, q), (one, v))[1]
+    jacobian = constraint_jacobian(g, t, q, args)
+    rhs = jnp.concatenate([jacobian.T, (_flat(force) - mixed)[:, None]], axis=1)
+    operator = lx.MatrixLinearOperator(hessian, lx.symmetric_tag)
+    solved = jax.vmap(lambda b: lx.linear_solve(operator, b, lx.LU(), throw=False))(
+        rhs.T
+    )
+    w_gt, w_f = solved.value[:-1].T, solved.value[-1]
+
+    def rate(t_, q_):
         return jax.jvp(
             lambda s, x: constraint_values(g, s, x, args), (t_, q_), (one, v)
         )[1]
 
-    v, _ = velocity(term.lagrangian, t, (q, p), args)
-    _, b = jax.jvp(hidden, (t, q, p), (one, v, force))
-    zeros_q = jtu.tree_map(jnp.zeros_like, q)
-    matvec = lambda lam: jax.jvp(hidden, (t, q, p), (zero, zeros_q, push(lam)))[1]
-    operator = lx.FunctionLinearOperator(matvec, jax.ShapeDtypeStruct((m,), dtype))
-    lam = lx.linear_solve(operator, b, lx.LU(), throw=False).value
-    return jtu.tree_map(jnp.negative, push(lam))
+    curvature = jax.jvp(rate, (t, q), (one, v))[1]
+    reduced = lx.MatrixLinearOperator(jacobian @ w_gt)
+    lam = lx.linear_solve(reduced, jacobian @ w_f + curvature, lx.LU(), throw=False)
+    ok = (lam.result == lx.RESULTS.successful) & jnp.all(
+        solved.result == lx.RESULTS.successful
+    )
+    result = dfx.RESULTS.where(ok, dfx.RESULTS.successful, dfx.RESULTS.singular)
+    return jax.flatten_util.ravel_pytree(q)[1](-jacobian.T @ lam.value), result

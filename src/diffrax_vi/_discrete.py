@@ -26,7 +26,7 @@ import jax.tree_util as jtu
 import optimistix as optx
 
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
-from ._force import applied_force
+from ._force import applied_force, power
 from ._lagrangian import AbstractLagrangian, lagrangian_value, momentum_offset
 from ._misc import tree_axpy
 from ._nonlinear import solve
@@ -202,6 +202,15 @@ def step_increments(rule, lagrangian, t0, h, q0, v, args, force=None) -> tuple[Q
         f_minus, f_plus = rule.forces(force, t0, h, q0, v, args)
         dp = jtu.tree_map(lambda a, b, c: a + b + c, dp, f_minus, f_plus)
     return jtu.tree_map(lambda x: h * x, v), dp
+
+
+def step_work(rule, force, t0, h, q0, v, args) -> Scalar:
+    r"""The work $(f^- + f^+)\cdot v$ of the discrete forces over the step with
+    velocity $v = (q_1 - q_0)/h$: the term that the discrete forces add to the
+    energy balance, by the rule's own quadrature (for the midpoint rule
+    $h\,F_{1/2}\cdot v$, for the trapezoidal rule $\tfrac h2 (F_0 + F_1)\cdot v$)."""
+    f_minus, f_plus = rule.forces(force, t0, h, q0, v, args)
+    return power(jtu.tree_map(lambda a, b: a + b, f_minus, f_plus), v)
 
 
 def discrete_hamiltonian_map(

@@ -25,7 +25,9 @@ VF_ERRORS = (
     "The Lagrangian is degenerate at this state: d^2L/dv^2 is singular to working "
     "precision, so the velocity is not determined by the momentum. Make the kinetic "
     "energy positive definite in every velocity component (a zero mass, or a "
-    "velocity entering L linearly, is degenerate).",
+    "velocity entering L linearly, is degenerate). With a constraint, this also "
+    "means that G (d2L/dv2)^-1 G^T is singular: the constraint Jacobian G = dg/dq "
+    "lost rank (redundant constraints, or a singular configuration).",
     "Newton's method could not invert the Legendre map p = dL/dv at this state, "
     "though d^2L/dv^2 is regular there: the momentum may lie outside the map's range "
     "(|p| has no velocity, e.g. beyond the speed limit of a relativistic L). Check "
@@ -119,8 +121,11 @@ class LagrangianTerm(dfx.AbstractTerm):
             force = applied_force(self.force, t, q, v, args)
             dp = jtu.tree_map(lambda a, b: a + b, dp, force)
         if self.constraint is not None:
-            reaction = multiplier_force(self, t, q, p, dp, args)
+            reaction, solvable = multiplier_force(self, t, q, p, v, dp, args)
             dp = jtu.tree_map(lambda a, b: a + b, dp, reaction)
+            result = dfx.RESULTS.where(
+                result == dfx.RESULTS.successful, solvable, result
+            )
         return (v, dp), result
 
     def vf(self, t: RealScalarLike, y: PyTree, args: Args) -> PyTree:

@@ -152,10 +152,11 @@ def _study(call, **kwargs):
 
 def _drift(args: argparse.Namespace) -> int:
     from .study import drift
-    from .study._drift import check_drift
+    from .study._drift import check_drift, check_methods
 
     scene = _scene(args.scene)
     methods = _methods(args.solvers, args.rtol, scene)
+    _study(check_methods, scene=scene, methods=methods)
     _study(
         check_drift,
         scene=scene,

@@ -197,21 +197,27 @@ def step_inputs(
 class MethodStep(eqx.Module):
     """What a method's step produces: the increments of the state, a velocity of the
     step (the guess for the Legendre inversions of the dense output), the method's new
-    state, and whether the step succeeded."""
+    state, whether the step succeeded, and, for a term with an applied force, the
+    work of the method's discrete forces over the step (`None` without one)."""
 
     dq: Q
     dp: P
     v: V
     state: PyTree
     result: dfx.RESULTS
+    work: Array | None = None
 
 
 class VIState(eqx.Module):
-    """The solver state of a variational solver: the method's own state, and the
-    compensation of the summation (`None` when it is off)."""
+    """The solver state of a variational solver: the method's own state, the
+    compensation of the summation (`None` when it is off), and for a term with an
+    applied force the work of the discrete forces since the start (`None` without
+    one): the $W$ of the energy balance $E(t) - E(0) = W(t)$, accumulated as the
+    method's own quadrature of the force accumulates the momentum."""
 
     method: PyTree
     compensation: PyTree | None
+    work: Array | None = None
 
 
 def step_result(result: dfx.RESULTS, y1: PyTree) -> tuple[PyTree, dfx.RESULTS]:
@@ -290,7 +296,8 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
             Substep(1.0, t0, t1),
             type(self).__name__,
         )
-        return check_times(t0, t1, VIState(self.method_init(step), compensation))
+        work = None if step.term.force is None else jnp.zeros((), step.dtype)
+        return check_times(t0, t1, VIState(self.method_init(step), compensation, work))
 
     def step(
         self,
@@ -325,7 +332,10 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         y1, compensation = compensated_add(y0, (out.dq, out.dp), compensation)
         y1, result = step_result(out.result, y1)
         dense_info = hermite_dense_info(step, y0, y1, out.v)
-        return y1, None, dense_info, VIState(out.state, compensation), result
+        work = solver_state.work
+        if work is not None:
+            work = work + out.work
+        return y1, None, dense_info, VIState(out.state, compensation, work), result
 
     def func(
         self, terms: dfx.AbstractTerm, t0: RealScalarLike, y0: PyTree, args: Args

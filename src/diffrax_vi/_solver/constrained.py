@@ -23,7 +23,7 @@ import equinox as eqx
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import optimistix as optx
-from jaxtyping import ArrayLike, Bool, PyTree
+from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._constraint import (
     check_start as check_constraint_start,
@@ -72,9 +72,12 @@ def constrained_step(
     increments_at: Callable[[StepInputs, PyTree], tuple[Q, P]],
     root_finder: optx.AbstractRootFinder | None,
     max_steps: int,
+    work_at: Callable[[StepInputs, PyTree], Array] | None = None,
 ) -> MethodStep:
-    """One constrained step of the method whose unconstrained equations and increments
-    are `residual_at(step, w)` and `increments_at(step, w)`."""
+    """One constrained step of the method whose unconstrained equations, increments
+    and (with a force) work of its discrete forces are `residual_at(step, w)`,
+    `increments_at(step, w)` and `work_at(step, w)`. The constraint forces do no work
+    on the constrained motion and are not counted."""
     g, t0, t1, q0, args = (
         step.term.constraint,
         step.t0,
@@ -116,6 +119,9 @@ def constrained_step(
         frozenset(),
         # The joint Jacobian of a saddle-point system is indefinite: no curvature test.
         False,
+        None
+        if work_at is None
+        else (lambda unknowns: work_at(shifted(unknowns[1]), unknowns[0])),
     )
     q1 = _add(q0, out.dq)
     projected = project_momentum(
@@ -124,4 +130,6 @@ def constrained_step(
     result = dfx.RESULTS.where(
         out.result == dfx.RESULTS.successful, projected.result, out.result
     )
-    return MethodStep(out.dq, _add(out.dp, projected.impulse), out.v, out.state, result)
+    return MethodStep(
+        out.dq, _add(out.dp, projected.impulse), out.v, out.state, result, out.work
+    )

@@ -141,10 +141,12 @@ def solve_step(
     inverse_mass: PyTree | None,
     tags: frozenset,
     one_stage: bool,
+    work=None,
 ) -> MethodStep:
     """One implicit step: solve `residual(w) = 0` (with `residual` returning the
     residual and the size of its terms) from the extrapolated guess, check the root,
-    and take the step's `increments(w)`.
+    and take the step's `increments(w)` (and, given `work`, the work `work(w)` of
+    its discrete forces).
 
     `root_finder=None` chooses: for a separable Lagrangian (`inverse_mass` given),
     the fixed-point iteration, falling back to Newton's method from the same guess
@@ -214,7 +216,7 @@ def solve_step(
     result = start_result(step, all_finite(state.last), result)
     v = jtu.tree_map(lambda x: x / step.h, dq)
     new = Unknowns(unknowns, state.last, solved.carry, state.positive)
-    return MethodStep(dq, dp, v, new, result)
+    return MethodStep(dq, dp, v, new, result, None if work is None else work(unknowns))
 
 
 def start_result(
@@ -239,7 +241,7 @@ class AbstractImplicitVI(
     step for the method's unknowns.
 
     A subclass implements `stage_guess`, `stage_residual`, `stage_increments`,
-    `inverse_mass` and `jacobian_tags`.
+    `stage_work`, `inverse_mass` and `jacobian_tags`.
     """
 
     root_finder: AbstractVar[optx.AbstractRootFinder | None]
@@ -259,6 +261,11 @@ class AbstractImplicitVI(
     @abc.abstractmethod
     def stage_increments(self, step: StepInputs, unknowns: PyTree) -> tuple[Q, P]:
         """The increments `(q1 - q0, p1 - p0)` of the step with these unknowns."""
+
+    @abc.abstractmethod
+    def stage_work(self, step: StepInputs, unknowns: PyTree) -> Array:
+        """The work of the step's discrete applied forces with these unknowns, by
+        the quadrature that the method applies to the force."""
 
     @abc.abstractmethod
     def inverse_mass(self, step: StepInputs) -> PyTree | None:
@@ -304,6 +311,7 @@ class AbstractImplicitVI(
                 self.stage_increments,
                 self.root_finder,
                 self.root_find_max_steps,
+                None if step.term.force is None else self.stage_work,
             )
         return solve_step(
             step,
@@ -316,6 +324,7 @@ class AbstractImplicitVI(
             self.inverse_mass(step),
             self.jacobian_tags(step),
             self.one_stage,
+            None if step.term.force is None else (lambda w: self.stage_work(step, w)),
         )
 
     @property

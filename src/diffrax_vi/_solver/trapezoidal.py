@@ -6,7 +6,7 @@ import jax.tree_util as jtu
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, PyTree
 
-from .._discrete import step_increments, step_residual, TrapezoidalRule
+from .._discrete import step_increments, step_residual, step_work, TrapezoidalRule
 from .._force import applied_force, depends_on_velocity
 from .._lagrangian import (
     AbstractSeparableLagrangian,
@@ -38,6 +38,10 @@ def _force(step: StepInputs, t, q) -> PyTree:
     zeros = jtu.tree_map(jnp.zeros_like, q)
     applied = applied_force(step.term.force, t, q, zeros, step.args)
     return jtu.tree_map(lambda a, b: a + b, force, applied)
+
+
+def _work(step: StepInputs, v) -> PyTree:
+    return step_work(_RULE, step.term.force, step.t0, step.h, step.q0, v, step.args)
 
 
 def _explicit(step: StepInputs) -> bool:
@@ -152,6 +156,7 @@ class TrapezoidalVI(
                 _increments,
                 self.root_finder,
                 self.root_find_max_steps,
+                None if step.term.force is None else _work,
             )
         return solve_step(
             step,
@@ -164,6 +169,7 @@ class TrapezoidalVI(
             None,
             frozenset(),
             True,  # one velocity: the curvature of the discrete action tests the root
+            None if step.term.force is None else (lambda v: _work(step, v)),
         )
 
     def _explicit_step(
@@ -191,7 +197,12 @@ class TrapezoidalVI(
         result = dfx.RESULTS.where(
             state.regular, dfx.RESULTS.successful, dfx.RESULTS.singular
         )
-        return MethodStep(dq, dp, v, ExplicitState(force1, state.regular), result)
+        work = None
+        if step.term.force is not None:
+            # The trapezoidal rule's discrete forces, of the positions alone here.
+            work = _work(step, v)
+        new = ExplicitState(force1, state.regular)
+        return MethodStep(dq, dp, v, new, result, work)
 
 
 class ExplicitState(eqx.Module):

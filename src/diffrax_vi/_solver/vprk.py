@@ -30,10 +30,10 @@ import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
 from equinox import AbstractVar
-from jaxtyping import PyTree
+from jaxtyping import Array, PyTree
 
 from .._custom_types import P, Q, V
-from .._force import applied_force
+from .._force import applied_force, power
 from .._lagrangian import (
     AbstractSeparableLagrangian,
     broadcast_mass,
@@ -227,27 +227,43 @@ class AbstractVPRK(AbstractImplicitVI):
         s = self.tableau.stages
         return jtu.tree_map(lambda x: jnp.broadcast_to(x, (s, *x.shape)), v)
 
-    def _stage_grads(self, step: StepInputs, stage_v: PyTree) -> tuple[PyTree, PyTree]:
+    def _stages(self, step: StepInputs, stage_v: PyTree) -> tuple[PyTree, PyTree]:
+        r"""The stage times and positions $Q_i = q_0 + h\sum_j a_{ij} V_j$."""
         tableau = self.tableau
         h = step.h
         stage_ts = step.t0 + jnp.asarray(tableau.c, step.dtype) * h
         stage_q = jtu.tree_map(
             lambda q, dq: q[None] + h * dq, step.q0, _combine(tableau.a, stage_v)
         )
+        return stage_ts, stage_q
+
+    def _applied(self, step: StepInputs, stage_v: PyTree) -> PyTree:
+        """The applied force at each stage."""
+        stage_ts, stage_q = self._stages(step, stage_v)
+        force = step.term.force
+        return jax.vmap(lambda t, q, v: applied_force(force, t, q, v, step.args))(
+            stage_ts, stage_q, stage_v
+        )
+
+    def _stage_grads(self, step: StepInputs, stage_v: PyTree) -> tuple[PyTree, PyTree]:
+        stage_ts, stage_q = self._stages(step, stage_v)
         grad = jax.grad(
             lambda t, q, v: lagrangian_value(step.term.lagrangian, t, q, v, step.args),
             argnums=(1, 2),
         )
         dl_dq, dl_dv = jax.vmap(grad)(stage_ts, stage_q, stage_v)
-        force = step.term.force
-        if force is not None:
+        if step.term.force is not None:
             # The forced stage equations: the Lagrange-d'Alembert principle with the
             # force sampled, like dL/dq, at the stages (Marsden & West (2001), §3.2).
-            applied = jax.vmap(
-                lambda t, q, v: applied_force(force, t, q, v, step.args)
-            )(stage_ts, stage_q, stage_v)
+            applied = self._applied(step, stage_v)
             dl_dq = jtu.tree_map(lambda a, b: a + b, dl_dq, applied)
         return dl_dq, dl_dv
+
+    def stage_work(self, step: StepInputs, stage_v: PyTree) -> Array:
+        # h sum_i b_i F(Q_i, V_i) . V_i: the quadrature with which the stages
+        # accumulate the force's impulse.
+        stage_power = jax.vmap(power)(self._applied(step, stage_v), stage_v)
+        return step.h * jnp.sum(jnp.asarray(self.tableau.b, step.dtype) * stage_power)
 
     def stage_residual(
         self, step: StepInputs, stage_v: PyTree

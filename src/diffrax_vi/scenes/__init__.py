@@ -57,6 +57,7 @@ SCENES = {
     "outer_solar_system": outer_solar_system,
     "learned": learned,
     "bead_wire": bead_wire,
+    "forced_duffing": forced_duffing,
     "cartesian_pendulum": cartesian_pendulum,
     "four_bar": four_bar,
 }

@@ -194,7 +194,7 @@ class ConstraintResiduals(eqx.Module):
     constraint: eqx.Module
 
     def invariants(self) -> dict:
-        return {"constraint": self.values, "hidden constraint": self.hidden}
+        return {"constraint": self.values, "hidden_constraint": self.hidden}
 
     def values(self, t, y, args):
         return self.constraint(t, y[0], args)

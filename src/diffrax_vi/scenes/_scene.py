@@ -46,18 +46,17 @@ class Scene(eqx.Module):
         constraint."""
         return LagrangianTerm(self.lagrangian, self.force, self.constraint)
 
+    def energy(self, t, y, args) -> Array:
+        r"""The energy $E = p\cdot v - L$ at `(t, y)` ([`diffrax_vi.energy`][])."""
+        return energy(self.lagrangian, t, y, args)
+
     def conserved(self) -> dict[str, Callable]:
         """Every conserved quantity, energy first, as `fn(t, y, args) -> array`. With
         an applied force the energy is not conserved, and only `invariants` are
         listed (the drift study checks the energy balance instead)."""
         if self.force is not None:
             return dict(self.invariants)
-        lagrangian = self.lagrangian
-
-        def _energy(t, y, args):
-            return energy(lagrangian, t, y, args)
-
-        return {"energy": _energy, **self.invariants}
+        return {"energy": self.energy, **self.invariants}
 
     def perturbed(
         self, key: PRNGKeyArray, n: int, spread: float = 1e-3

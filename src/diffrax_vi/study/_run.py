@@ -12,7 +12,7 @@ from jaxtyping import Array, PyTree
 from .._misc import all_finite
 from ..scenes import Scene
 from ._methods import Method
-from ._track import TrackWorstError
+from ._track import EnergyBalance, TrackWorstError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,6 +72,13 @@ def shard_ensemble(y0s: PyTree[Array], members: int) -> PyTree[Array]:
     return jax.device_put(y0s, NamedSharding(mesh, PartitionSpec("ensemble")))
 
 
+def columns(scene: Scene) -> list[str]:
+    """The invariants a study records for `scene`, the energy's first: the energy
+    balance `energy_balance` of a forced scene, then its conserved quantities."""
+    names = list(scene.conserved())
+    return names if scene.force is None else ["energy_balance", *names]
+
+
 # An adaptive method may take on average at most this many steps per save interval
 # (as diffrax's default `max_steps`), so that a step size collapsing to nothing fails
 # the run rather than spinning.
@@ -112,6 +119,7 @@ def run(
     three compiled calls, as many as start within a second."""
     conserved = scene.conserved()
     terms = method.terms(scene)
+    args = scene.args
     fixed = method.rtol is None
     ts = jnp.linspace(0, t1, n_save + 1, dtype=dtype)
     h = jnp.asarray(t1 / n_steps, dtype)
@@ -129,6 +137,7 @@ def run(
             ts[-1],
             h if fixed else None,
             y0,
+            args=args,
             saveat=saveat,
             stepsize_controller=method.controller(),
             max_steps=None if fixed else MAX_ADAPTIVE_STEPS_PER_SAVE * n_save,
@@ -137,12 +146,17 @@ def run(
         )
 
     def solve(y0):
+        balance = None
+        if scene.force is not None:
+            energy = scene.energy
+            balance = EnergyBalance(energy, scene.term(), energy(ts[0], y0, args))
         solver = TrackWorstError(
             method.solver,
             conserved,
-            {k: f(ts[0], y0, None) for k, f in conserved.items()},
+            {k: f(ts[0], y0, args) for k, f in conserved.items()},
             ts[1:],
             steps_per_interval=n_steps // n_save if fixed else None,
+            balance=balance,
         )
         sol = diffeqsolve(
             solver,
@@ -200,7 +214,7 @@ def run(
     ]
     return Outcome(
         # In the scene's order (energy first), not the sorted order of a JAX dict.
-        max_errors={k: np.asarray(errors[k], np.float64) for k in conserved},
+        max_errors={k: np.asarray(errors[k], np.float64) for k in columns(scene)},
         final=jax.tree.map(np.asarray, final),
         steps=int(np.max(steps)),
         wall_time=wall_time,

@@ -4,7 +4,13 @@ import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
+
+from .._force import applied_force, power
+from .._lagrangian import velocity
+from .._solver.base import VIState
+from .._term import LagrangianTerm
 
 
 class Worst(eqx.Module):
@@ -18,6 +24,46 @@ class Worst(eqx.Module):
 
     errors: Float[Array, "n_save n_conserved"]
     steps: Int[Array, ""]
+    # The work of the applied force so far, for a solver that does not keep its own.
+    work: Float[Array, ""]
+
+
+# Gauss-Legendre nodes and weights on [0, 1], 4 points (exact for degree 7).
+_NODES, _WEIGHTS = np.polynomial.legendre.leggauss(4)
+_NODES, _WEIGHTS = (_NODES + 1) / 2, _WEIGHTS / 2
+
+
+class EnergyBalance(eqx.Module):
+    r"""The energy balance of a forced scene, $E(t) - E(0) - W(t)$ with $W$ the work
+    of the applied force, accumulated as the method accumulates the force's impulse:
+    a variational solver's own discrete work (the quadrature $f^\pm$ of its discrete
+    Lagrange–d'Alembert principle, kept in its state), and for any other solver the
+    power $F\cdot v$ integrated along the solver's own dense output of each step by
+    4-point Gauss–Legendre quadrature."""
+
+    energy: Callable
+    term: LagrangianTerm
+    start: Array
+
+    def dense_work(self, interpolation, t0, t1, args) -> Array:
+        def power_at(s):
+            t = t0 + s * (t1 - t0)
+            q, p = interpolation.evaluate(t)
+            v, _ = velocity(self.term.lagrangian, t, (q, p), args)
+            return power(applied_force(self.term.force, t, q, v, args), v)
+
+        nodes = jnp.asarray(_NODES, jnp.result_type(t0, t1))
+        return (t1 - t0) * jnp.sum(
+            jnp.asarray(_WEIGHTS, nodes.dtype) * jax.vmap(power_at)(nodes)
+        )
+
+
+def discrete_work(solver_state) -> Array | None:
+    """The accumulated work of a variational solver's discrete forces (its state is a
+    `VIState`, a composition's that of its base), or `None` for other solvers."""
+    if isinstance(solver_state, VIState):
+        return solver_state.work
+    return None
 
 
 class TrackWorstError(dfx.AbstractWrappedSolver):
@@ -40,6 +86,7 @@ class TrackWorstError(dfx.AbstractWrappedSolver):
     start: dict[str, Array]
     boundaries: Float[Array, " n_save"]
     steps_per_interval: int | None = eqx.field(static=True, default=None)
+    balance: EnergyBalance | None = None
 
     @property
     def term_structure(self):
@@ -56,8 +103,11 @@ class TrackWorstError(dfx.AbstractWrappedSolver):
     @property
     def names(self) -> list[str]:
         """The conserved quantities in the order of the columns of `Worst.errors`
-        (sorted: a dict in a pytree comes back with its keys sorted)."""
-        return sorted(self.conserved)
+        (sorted: a dict in a pytree comes back with its keys sorted), then
+        `energy_balance` for a forced scene."""
+        return sorted(self.conserved) + (
+            [] if self.balance is None else ["energy_balance"]
+        )
 
     def order(self, terms):
         return self.solver.order(terms)
@@ -69,9 +119,12 @@ class TrackWorstError(dfx.AbstractWrappedSolver):
         return self.solver.error_order(terms)
 
     def init(self, terms, t0, t1, y0, args):
-        dtype = jnp.result_type(*self.start.values())
-        errors = jnp.zeros((self.boundaries.shape[0], len(self.start)), dtype)
-        worst = Worst(errors, jnp.zeros((), jnp.int32))
+        starts = list(self.start.values())
+        if self.balance is not None:
+            starts.append(self.balance.start)
+        dtype = jnp.result_type(*starts)
+        errors = jnp.zeros((self.boundaries.shape[0], len(self.names)), dtype)
+        worst = Worst(errors, jnp.zeros((), jnp.int32), jnp.zeros((), dtype))
         return self.solver.init(terms, t0, t1, y0, args), worst
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
@@ -84,18 +137,28 @@ class TrackWorstError(dfx.AbstractWrappedSolver):
         else:
             index = worst.steps // self.steps_per_interval
         index = jnp.minimum(index, self.boundaries.shape[0] - 1)
-        errors = jnp.stack(
-            [
-                max_error(f(t1, y1, args), self.start[k])
-                for k, f in self.conserved.items()
-            ]
-        ).astype(worst.errors.dtype)
+        columns = [
+            max_error(f(t1, y1, args), self.start[k]) for k, f in self.conserved.items()
+        ]
+        work = worst.work
+        if self.balance is not None:
+            own = discrete_work(inner)
+            if own is None:
+                interpolation = self.solver.interpolation_cls(
+                    t0=t0, t1=t1, **dense_info
+                )
+                work = work + self.balance.dense_work(interpolation, t0, t1, args)
+            else:
+                work = own
+            gained = self.balance.energy(t1, y1, args) - self.balance.start
+            columns.append(jnp.abs(gained - work))
+        errors = jnp.stack(columns).astype(worst.errors.dtype)
         # A dynamic slice update, which XLA does in place inside the loop.
         row = jax.lax.dynamic_slice_in_dim(worst.errors, index, 1)
         errors = jax.lax.dynamic_update_slice_in_dim(
             worst.errors, jnp.maximum(row, errors[None]), index, 0
         )
-        worst = Worst(errors, worst.steps + 1)
+        worst = Worst(errors, worst.steps + 1, work)
         return y1, y_error, dense_info, (inner, worst), result
 
     def func(self, terms, t0, y0, args):
