@@ -77,7 +77,9 @@ STUDIES = {
         50,
         None,
     ),
-    "four_bar": (["MidpointVI", "Tsit5", "Dopri8"], 200, 50, None),
+    # Tsit5 at this step drifts off the loop into a singular configuration, where
+    # the index-reduced vector field raises (docs/forces-constraints.md).
+    "four_bar": (["MidpointVI", "Dopri8"], 200, 50, None),
 }
 
 

@@ -24,8 +24,9 @@ class Worst(eqx.Module):
 
     errors: Float[Array, "n_save n_conserved"]
     steps: Int[Array, ""]
-    # The work of the applied force so far, for a solver that does not keep its own.
-    work: Float[Array, ""]
+    # The work of the applied force so far, for a solver that does not keep its own
+    # (None without a force: nothing more in the loop's state).
+    work: Float[Array, ""] | None
 
 
 # Gauss-Legendre nodes and weights on [0, 1], 4 points (exact for degree 7).
@@ -124,7 +125,8 @@ class TrackWorstError(dfx.AbstractWrappedSolver):
             starts.append(self.balance.start)
         dtype = jnp.result_type(*starts)
         errors = jnp.zeros((self.boundaries.shape[0], len(self.names)), dtype)
-        worst = Worst(errors, jnp.zeros((), jnp.int32), jnp.zeros((), dtype))
+        work = None if self.balance is None else jnp.zeros((), dtype)
+        worst = Worst(errors, jnp.zeros((), jnp.int32), work)
         return self.solver.init(terms, t0, t1, y0, args), worst
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
