@@ -121,7 +121,6 @@ def project_momentum(
     q: Q,
     p: P,
     args: Args,
-    jacobian: Array | None = None,
 ) -> Projected:
     r"""$p - G(q)^\top\mu$ with $\mu$ such that $G(q)\,v(q, p - G^\top\mu)
     + \partial g/\partial t = 0$: the momentum on the hidden constraint (RATTLE's
@@ -129,8 +128,7 @@ def project_momentum(
     for a Lagrangian quadratic in the velocity the equation is linear, and one
     iteration solves it."""
     g = term.constraint
-    if jacobian is None:
-        jacobian = constraint_jacobian(g, t, q, args)
+    jacobian = constraint_jacobian(g, t, q, args)
     rate = constraint_rate(g, t, q, args)
     push = transpose_product(g, t, q, args)
     m = jacobian.shape[0]

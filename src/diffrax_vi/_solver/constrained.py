@@ -34,7 +34,6 @@ from .._constraint import (
     transpose_product,
 )
 from .._custom_types import P, Q
-from .._misc import tree_axpy
 from .._nonlinear import AbstractVIRootFinder
 from .base import MethodStep, StepInputs
 from .implicit import check_start, solve_step, Unknowns
@@ -124,9 +123,7 @@ def constrained_step(
         else (lambda unknowns: work_at(shifted(unknowns[1]), unknowns[0])),
     )
     q1 = _add(q0, out.dq)
-    projected = project_momentum(
-        step.term, t1, q1, tree_axpy(1.0, out.dp, step.p0), args
-    )
+    projected = project_momentum(step.term, t1, q1, _add(step.p0, out.dp), args)
     result = dfx.RESULTS.where(
         out.result == dfx.RESULTS.successful, projected.result, out.result
     )
