@@ -181,8 +181,8 @@ def project_onto_constraints(
     q0, p0 = split_state(y0)
     g = term.constraint
     push = transpose_product(g, t0, q0, args)
-    m = constraint_values(g, t0, q0, args).shape[0]
     jacobian0 = constraint_jacobian(g, t0, q0, args)
+    m = jacobian0.shape[0]
 
     def moved(lam):
         return jtu.tree_map(lambda a, b: a + b, q0, push(lam))
