@@ -98,3 +98,61 @@ def test_bad_mass_structure_raises():
         dvi.momentum(
             lagrangian, 0.0, (jnp.ones(2), jnp.ones(2)), (jnp.ones(2), jnp.ones(2))
         )
+
+
+def test_quadratic_in_velocity_is_structural_and_sound():
+    from diffrax_vi._lagrangian import as_lagrangian, quadratic_in_velocity
+
+    q = jnp.linspace(0.1, 0.5, 3)
+    quadratic = [
+        DoublePendulum(),
+        lambda t, q, v, args: 0.5 * jnp.sum(v**2) + jnp.dot(jnp.sin(q), v) - q @ q,
+        dvi.scenes.bead_wire(3).lagrangian,
+    ]
+    not_quadratic = [
+        lambda t, q, v, args: -jnp.sqrt(1 - jnp.sum(v**2)),
+        lambda t, q, v, args: 0.5 * jnp.sum(v**2) + 0.0 * jnp.sum(v**4),
+        lambda t, q, v, args: jnp.sum(jnp.exp(v)),
+    ]
+    for lagrangian in quadratic:
+        qq = q[:2] if isinstance(lagrangian, DoublePendulum) else q
+        assert quadratic_in_velocity(as_lagrangian(lagrangian), 0.0, qq, None)
+    for lagrangian in not_quadratic:
+        assert not quadratic_in_velocity(as_lagrangian(lagrangian), 0.0, q, None)
+
+
+def _wire_velocity(x, p, amplitude=0.2):
+    # The bead wire's Legendre map in closed form: p = m (1 + y'(x)^2) v.
+    slope = amplitude * 2 * jnp.pi * jnp.sin(2 * jnp.pi * x)
+    return p / (1 + slope**2)
+
+
+def test_large_affine_legendre_map_is_one_krylov_solve():
+    # 100 beads, beyond the dense solves: a Lagrangian quadratic in v by its trace is
+    # inverted by one conjugate-gradient solve, to round-off against the closed
+    # form; the same Lagrangian with a term that hides it (0 * v^4) takes Newton's
+    # path and agrees.
+    scene = dvi.scenes.bead_wire(100)
+    x = scene.y0[0] + 0.07 * jnp.sin(jnp.arange(100.0))
+    p = jnp.cos(0.3 * jnp.arange(100.0))
+    exact = _wire_velocity(x, p)
+    v, result = dvi.velocity(scene.lagrangian, 0.0, (x, p))
+    assert result == dfx.RESULTS.successful
+    assert jnp.max(jnp.abs(v - exact)) < 1e-14
+    hidden = lambda t, q, v, args: scene.lagrangian(t, q, v, args) + 0.0 * jnp.sum(v**4)
+    v_newton, result = dvi.velocity(hidden, 0.0, (x, p))
+    assert result == dfx.RESULTS.successful
+    assert jnp.max(jnp.abs(v_newton - exact)) < 1e-14
+    # Through the vector field under jit, as diffrax's solvers call it.
+    term = dvi.LagrangianTerm(scene.lagrangian)
+    dq, _ = jax.jit(lambda y: term.vf(0.0, y, None))((x, p))
+    assert jnp.max(jnp.abs(dq - exact)) < 1e-14
+
+
+def test_large_degenerate_affine_lagrangian_is_not_successful():
+    # No kinetic energy in the last of 100 coordinates: the conjugate-gradient solve
+    # cannot converge, Newton's method takes over and reports failure.
+    degenerate = lambda t, q, v, args: 0.5 * jnp.sum(v[:-1] ** 2) - jnp.sum(q**2)
+    q, p = jnp.zeros(100), jnp.ones(100)
+    v, result = dvi.velocity(degenerate, 0.0, (q, p))
+    assert result != dfx.RESULTS.successful

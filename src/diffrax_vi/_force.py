@@ -14,12 +14,12 @@ $$p_k = -D_1 L_d(q_k, q_{k+1}) - f^-_k,\qquad p_{k+1} = D_2 L_d(q_k, q_{k+1})
 from collections.abc import Callable
 
 import jax
-import jax.extend.core as jex
 import jax.numpy as jnp
 import jax.tree_util as jtu
 from jaxtyping import PyTree
 
 from ._custom_types import Args, P, Q, RealScalarLike, V
+from ._misc import reads
 
 
 def applied_force(
@@ -56,13 +56,7 @@ def depends_on_velocity(
     program (structurally, so a force that is zero at this `v` but not elsewhere
     still counts). A force of the positions and time alone keeps the Störmer–Verlet
     step explicit."""
-    closed = jax.make_jaxpr(lambda _v: force(t, q, _v, args))(v)
-    jaxpr = closed.jaxpr
-    dependent = set(jaxpr.invars)
-    for eqn in jaxpr.eqns:
-        if any(isinstance(x, jex.Var) and x in dependent for x in eqn.invars):
-            dependent.update(eqn.outvars)
-    return any(isinstance(x, jex.Var) and x in dependent for x in jaxpr.outvars)
+    return reads(lambda _v: force(t, q, _v, args), v)
 
 
 def power(force: P, v: V) -> jax.Array:

@@ -4,21 +4,24 @@ from collections.abc import Callable
 import diffrax as dfx
 import equinox as eqx
 import jax
+import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import lineax as lx
 from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
-from ._misc import all_finite, split_state, state_dtype
+from ._misc import all_finite, reads, split_state, state_dtype
 from ._nonlinear import (
     DENSE_MAX,
+    krylov_solve,
     Newton,
     newton_tolerance,
     scaled_norm,
     singular_threshold,
     solve,
 )
+from ._private_api import unvmap_any
 
 
 class AbstractLagrangian(eqx.Module):
@@ -321,6 +324,52 @@ NOT_QUADRATIC = (
 )
 
 
+def quadratic_in_velocity(
+    lagrangian: AbstractLagrangian, t: RealScalarLike, q: Q, args: Args
+) -> bool:
+    r"""Whether $\partial^2 L/\partial v^2$ provably does not depend on $v$: its
+    products $w \mapsto \partial^2 L/\partial v^2\,w$, as traced, never read $v$.
+    Structural and conservative (a Lagrangian quadratic in $v$ in a way the trace
+    does not show, e.g. through `jnp.linalg.norm(v) ** 2`, is not recognised), and
+    decided at trace time. Then $\partial L/\partial v$ is affine in $v$ and one
+    linear solve inverts it exactly."""
+    zeros = jtu.tree_map(jnp.zeros_like, q)
+
+    def hvp(v, w):
+        return jax.jvp(lambda _v: momentum(lagrangian, t, q, _v, args), (v,), (w,))[1]
+
+    return not reads(hvp, zeros, zeros)
+
+
+def _affine_velocity(lagrangian, t, q, p, args) -> tuple[V, dfx.RESULTS]:
+    """The velocity of a Lagrangian whose momentum is affine in `v`, matrix-free: one
+    conjugate-gradient solve of Hessian-vector products, to round-off. `breakdown`
+    where it does not converge (an ill-conditioned or indefinite d2L/dv2)."""
+    zeros = jtu.tree_map(jnp.zeros_like, p)
+    p_rest, hvp = jax.linearize(lambda v: momentum(lagrangian, t, q, v, args), zeros)
+    rhs = jtu.tree_map(lambda a, b: a - b, p, p_rest)
+    eps = float(jnp.finfo(state_dtype(p)).eps)
+    n = sum(jnp.size(x) for x in jtu.tree_leaves(p))
+    v, linear_result = krylov_solve(
+        hvp,
+        rhs,
+        64 * eps,
+        frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag}),
+        min(n, _AFFINE_MAX_STEPS),
+    )
+    return v, dfx.RESULTS.where(
+        linear_result == lx.RESULTS.successful,
+        dfx.RESULTS.successful,
+        dfx.RESULTS.breakdown,
+    )
+
+
+# Conjugate-gradient iterations of the matrix-free inverse of an affine Legendre map
+# before Newton's method takes over: a mass matrix in sensible units converges in
+# tens (one for the chain, 8 for the bead wire).
+_AFFINE_MAX_STEPS = 100
+
+
 # Newton for the inverse Legendre map of a general Lagrangian: damped, so that it
 # converges from a poor start (the relativistic particle's velocity from v = 0 at
 # p0 = 3 overshoots |v| < 1 without damping).
@@ -403,21 +452,37 @@ def velocity(
             regular, dfx.RESULTS.successful, dfx.RESULTS.singular
         )
     else:
-        solved = solve(
-            residual,
-            zeros if v_guess is None else v_guess,
-            _LEGENDRE_NEWTON,
-            max_steps=32,
-            tags=frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag}),
-        )
-        v = solved.value
-        regular = solved.pivot_ratio > singular_threshold(n, dtype)
-        converged = solved.result == dfx.RESULTS.successful
-        result = dfx.RESULTS.where(
-            ~regular,
-            dfx.RESULTS.singular,
-            dfx.RESULTS.where(converged, dfx.RESULTS.successful, dfx.RESULTS.breakdown),
-        )
+
+        def newton(v_guess):
+            solved = solve(
+                residual,
+                v_guess,
+                _LEGENDRE_NEWTON,
+                max_steps=32,
+                tags=frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag}),
+            )
+            regular = solved.pivot_ratio > singular_threshold(n, dtype)
+            converged = solved.result == dfx.RESULTS.successful
+            return solved.value, dfx.RESULTS.where(
+                ~regular,
+                dfx.RESULTS.singular,
+                dfx.RESULTS.where(
+                    converged, dfx.RESULTS.successful, dfx.RESULTS.breakdown
+                ),
+            )
+
+        guess = zeros if v_guess is None else v_guess
+        if n > DENSE_MAX and quadratic_in_velocity(lagrangian, t, q, args):
+            # One solve (Newton's first iterate, to round-off) without its two
+            # evaluations of the residual; Newton from there where it fails.
+            v, result = _affine_velocity(lagrangian, t, q, p, args)
+            v, result = lax.cond(
+                unvmap_any(result != dfx.RESULTS.successful),
+                lambda: newton(guess),
+                lambda: (v, result),
+            )
+        else:
+            v, result = newton(guess)
     return v, result_or_nonfinite(v, p, result)
 
 

@@ -1,3 +1,5 @@
+import jax
+import jax.extend.core as jex
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
@@ -87,3 +89,18 @@ def tree_max_abs(tree: PyTree) -> Array:
     """The largest `|x|` over every leaf."""
     leaves = [jnp.max(jnp.abs(x), initial=0.0) for x in jtu.tree_leaves(tree)]
     return jnp.max(jnp.stack(leaves))
+
+
+def reads(fn, x: PyTree, *rest) -> bool:
+    """Whether `fn(x, *rest)` reads `x` at all, decided from its traced program: an
+    output counts as reading `x` if any operation on the way to it takes a value
+    computed from `x` (conservative: a primitive with a sub-program is followed as
+    a whole). Structural, so a dependence that vanishes at this `x` but not
+    elsewhere still counts."""
+    closed = jax.make_jaxpr(fn)(x, *rest)
+    jaxpr = closed.jaxpr
+    dependent = set(jaxpr.invars[: len(jtu.tree_leaves(x))])
+    for eqn in jaxpr.eqns:
+        if any(isinstance(y, jex.Var) and y in dependent for y in eqn.invars):
+            dependent.update(eqn.outvars)
+    return any(isinstance(y, jex.Var) and y in dependent for y in jaxpr.outvars)

@@ -180,8 +180,10 @@ def krylov_solve(
     tags: frozenset,
     max_steps: int,
     preconditioner: PyTree | None = None,
+    guess: PyTree | None = None,
 ) -> tuple[PyTree, lx.RESULTS]:
-    """`A^{-1} b` for the operator `matvec`, matrix-free: conjugate gradients where
+    """`A^{-1} b` for the operator `matvec`, matrix-free, from the initial `guess`
+    (zero if `None`): conjugate gradients where
     `tags` say symmetric positive (semi)definite, else BiCGStab, and restarted
     GMRES(20) where BiCGStab breaks down; to relative accuracy `rtol`, preconditioned
     by positive diagonal weights `preconditioner`. (lineax's GMRES makes all 20
@@ -209,6 +211,8 @@ def krylov_solve(
         lambda w: jtu.tree_map(lambda x: x / a_size, matvec(w)), b_struct, tags=tags
     )
     options = {}
+    if guess is not None:
+        options["y0"] = jtu.tree_map(lambda x: x * (a_size / b_size), guess)
     if preconditioner is not None:
         options["preconditioner"] = lx.FunctionLinearOperator(
             weigh, b_struct, tags=(lx.symmetric_tag, lx.positive_semidefinite_tag)
@@ -306,12 +310,16 @@ class Newton(AbstractVIRootFinder):
                 sol = lx.linear_solve(operator, f, lx.LU(), state=lu_state, throw=False)
                 delta, result = sol.value, optx.RESULTS.promote(sol.result)
             else:
-                tol = self.tolerance(y)
                 # Eisenstat-Walker choice 2 (gamma = 0.9, alpha = 2), never asking for
-                # more than the Newton tolerance needs.
+                # a residual below `64 eps` of the terms, which round-off would not
+                # let the solve reach. The last update (from below the Newton
+                # tolerance) then leaves the residual at round-off, as a dense solve
+                # does: a forcing term bounded below by `tol / rho` stopped it at
+                # about `tol / 2` (4e-9 in float64).
+                floor = 64 * eps
                 forcing = jnp.clip(
                     0.9 * (rho / state.rho_prev) ** 2,
-                    0.5 * tol / jnp.maximum(rho, tol),
+                    floor / jnp.maximum(rho, floor),
                     0.5,
                 )
                 forcing = jnp.where(jnp.isfinite(state.rho_prev), forcing, 0.5)

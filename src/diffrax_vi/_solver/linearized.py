@@ -118,7 +118,7 @@ class LinearizedVI(AbstractVariationalSolver):
     def order(self, terms):
         return None
 
-    def _linear_solve(self, matvec, rhs) -> tuple[PyTree, lx.RESULTS]:
+    def _linear_solve(self, matvec, rhs, guess) -> tuple[PyTree, lx.RESULTS]:
         if self.linear_solver is not None or tree_size(rhs) <= NEWTON_DENSE_MAX:
             operator = lx.FunctionLinearOperator(matvec, jax.eval_shape(lambda: rhs))
             solver = lx.LU() if self.linear_solver is None else self.linear_solver
@@ -126,7 +126,9 @@ class LinearizedVI(AbstractVariationalSolver):
             return sol.value, sol.result
         # One solve with no Newton iteration to correct it: to near round-off.
         eps = float(jnp.finfo(tree_dtype(rhs)).eps)
-        return krylov_solve(matvec, rhs, 100 * eps, frozenset(), 10 * tree_size(rhs))
+        return krylov_solve(
+            matvec, rhs, 100 * eps, frozenset(), 10 * tree_size(rhs), guess=guess
+        )
 
     def _n_past(self) -> int:
         return 2 if self.velocity == "forward" else 3
@@ -240,7 +242,8 @@ class LinearizedVI(AbstractVariationalSolver):
         # The matrix dF/dq_{k+1}: only D1 Ld(q_k, q_{k+1}) depends on q_{k+1}, so
         # each product of the linear solve differentiates it alone.
         _, matvec = jax.linearize(lambda c: momenta(x, y, c)[1], z)
-        u_z, linear_result = self._linear_solve(matvec, rhs)
+        # From the last velocity, which differs from the new one by O(h).
+        u_z, linear_result = self._linear_solve(matvec, rhs, u_y)
         dq = jtu.tree_map(lambda b, u, q: (b - q) + span * u, base, u_z, q0)
         # The discrete Legendre transform p_{k+1} = D2 Ld(q_k, q_{k+1}) through the
         # step's velocity: u_z itself for forward velocities, so nothing cancels.
