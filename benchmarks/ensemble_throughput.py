@@ -5,8 +5,10 @@ ensemble with `jax.sharding`).
 
 For each solver and ensemble size it prints the throughput and its ratio to the
 single-trajectory run, i.e. how much of the batch dimension the hardware turns into
-speed. Also two floors for StormerVerlet without compensated summation
-("StormerVerlet(plain)"): a bare `jax.vmap` of a `jax.lax.scan` of the kick-drift-kick
+speed. The study runs fixed steps in `diffrax_vi.solve_fixed_steps` (the solver's own
+step in an unrolled scan); for StormerVerlet without compensated summation
+("StormerVerlet(plain)") it also prints a plain vmapped `diffeqsolve` of the same
+solver, and two floors: a bare `jax.vmap` of a `jax.lax.scan` of the kick-drift-kick
 update, and the same scan with `unroll=32`; and the study's ratio to each.
 
 Run: `python benchmarks/ensemble_throughput.py [--sizes 1,64,1024,4096]`.
@@ -15,12 +17,13 @@ Run: `python benchmarks/ensemble_throughput.py [--sizes 1,64,1024,4096]`.
 import argparse
 import time
 
+import diffrax as dfx
 import jax
 
 
 jax.config.update("jax_enable_x64", True)
 
-from diffrax_vi import StormerVerlet  # noqa: E402
+from diffrax_vi import separable_terms, StormerVerlet  # noqa: E402
 from diffrax_vi.scenes import kepler  # noqa: E402
 from diffrax_vi.study import drift, Method  # noqa: E402
 from step_cost import add_xla_option, apply_xla_option  # noqa: E402
@@ -41,6 +44,31 @@ def bare_scan_throughput(scene, n, steps, h, unroll=1):
             return (q, p + 0.5 * h * force(q)), None
 
         return jax.lax.scan(step, y0, length=steps, unroll=unroll)[0]
+
+    solve = jax.jit(jax.vmap(trajectory))
+    y0s = scene.perturbed(jax.random.key(0), n)
+    jax.block_until_ready(solve(y0s))
+    start = time.perf_counter()
+    jax.block_until_ready(solve(y0s))
+    return n * steps / (time.perf_counter() - start)
+
+
+def diffeqsolve_throughput(scene, n, steps, h):
+    solver = StormerVerlet(False)
+    terms = separable_terms(scene.lagrangian)
+
+    def trajectory(y0):
+        sol = dfx.diffeqsolve(
+            terms,
+            solver,
+            0.0,
+            steps * h,
+            h,
+            y0,
+            saveat=dfx.SaveAt(t1=True),
+            max_steps=steps,
+        )
+        return sol.ys
 
     solve = jax.jit(jax.vmap(trajectory))
     y0s = scene.perturbed(jax.random.key(0), n)
@@ -88,12 +116,16 @@ def main():
                 + ("" if run.result == "successful" else f"  ({run.result})")
             )
     h = scene.period / 200
-    print("\nfloors: a bare jax.vmap of a lax.scan of the same (uncompensated) update")
     print(
-        f"{'members':>8} {'bare scan':>12} {'unroll=32':>12} "
-        f"{'study / bare':>13} {'study / unrolled':>17}"
+        "\nStormerVerlet(plain): the study, a plain vmapped diffeqsolve, and the floors"
+        " (a bare jax.vmap of a lax.scan of the same uncompensated update)"
+    )
+    print(
+        f"{'members':>8} {'diffeqsolve':>12} {'bare scan':>12} {'unroll=32':>12} "
+        f"{'diffeqsolve / bare':>19} {'study / bare':>13} {'study / unrolled':>17}"
     )
     for n in sizes:
+        loop = diffeqsolve_throughput(scene, n, args.steps, h)
         rate = bare_scan_throughput(scene, n, args.steps, h)
         unrolled = bare_scan_throughput(scene, n, args.steps, h, unroll=32)
         ratios = (
@@ -101,7 +133,10 @@ def main():
             if n in plain
             else ""
         )
-        print(f"{n:>8} {rate:>12.3e} {unrolled:>12.3e} {ratios}")
+        print(
+            f"{n:>8} {loop:>12.3e} {rate:>12.3e} {unrolled:>12.3e} "
+            f"{loop / rate:>18.2f}x {ratios}"
+        )
     print(
         "targets (issue 13): study >= 0.5x the bare scan at 1024 members on CPU; "
         ">= 0.5x the unrolled scan at >= 131072 members on a GPU"

@@ -137,24 +137,35 @@ def test_adaptive_study_takes_the_steps_of_a_plain_solve(n_save):
 def test_wall_time_is_of_the_method_alone(monkeypatch):
     # The tracking of errors adds work to every step (on CPU it made Stormer-Verlet on
     # Kepler 25x slower), so a study times a separate plain solve: the solver itself,
-    # unwrapped, saving only t1, with the study's step and controller.
+    # unwrapped, saving only t1, with the study's step and controller. Fixed steps go
+    # through `solve_fixed_steps` (diffeqsolve's steps in a scan), adaptive ones
+    # through diffeqsolve.
+    from diffrax_vi.study import _run
+
     calls = []
     original = dfx.diffeqsolve
+    original_fixed = _run.solve_fixed_steps
 
     def spy(terms, solver, t0, t1, dt0, y0, **kwargs):
         calls.append((solver, dt0, kwargs["saveat"], kwargs["stepsize_controller"]))
         return original(terms, solver, t0, t1, dt0, y0, **kwargs)
 
+    def spy_fixed(terms, solver, t0, t1, dt0, y0, args, **kwargs):
+        calls.append((solver, dt0, None, None))
+        return original_fixed(terms, solver, t0, t1, dt0, y0, args, **kwargs)
+
     monkeypatch.setattr(dfx, "diffeqsolve", spy)
+    monkeypatch.setattr(_run, "solve_fixed_steps", spy_fixed)
     study = drift(kepler(), ["StormerVerlet", "Tsit5+PID"], periods=1, n_save=5)
     assert [r.result for r in study.runs] == ["successful"] * 2
+    solvers = [type(c[0]) for c in calls]
+    assert dvi.StormerVerlet in solvers  # the plain fixed-step solve, unwrapped
+    fixed = [c for c in calls if c[2] is None]
+    assert all(c[1] == pytest.approx(kepler().period / 200) for c in fixed)
     plain = [c for c in calls if c[2] == dfx.SaveAt(t1=True)]
-    assert [type(c[0]) for c in plain] == [dvi.StormerVerlet, dfx.Tsit5]
-    (fixed, _, _, fixed_control), (adaptive, dt0, _, control) = plain
-    assert isinstance(fixed_control, dfx.ConstantStepSize) and dt0 is None
-    assert control == dfx.PIDController(rtol=1e-8, atol=1e-8)
-    tracked = [c for c in calls if c[2] != dfx.SaveAt(t1=True)]
-    assert len(tracked) == 2 and all(c[0].solver in (fixed, adaptive) for c in tracked)
+    assert [type(c[0]) for c in plain] == [dfx.Tsit5]
+    (_, dt0, _, control) = plain[0]
+    assert dt0 is None and control == dfx.PIDController(rtol=1e-8, atol=1e-8)
 
 
 DEFAULT = ["MidpointVI", "StormerVerlet", "KahanLi8", "Tsit5", "Dopri8", "Dopri8+PID"]

@@ -24,6 +24,10 @@ from ._nonlinear import (
     Newton as Newton,
     SimplifiedNewton as SimplifiedNewton,
 )
+from ._scan import (
+    FixedStepSolution as FixedStepSolution,
+    solve_fixed_steps as solve_fixed_steps,
+)
 from ._solver import (
     AbstractImplicitVI as AbstractImplicitVI,
     AbstractSymmetricSolver as AbstractSymmetricSolver,

@@ -140,7 +140,8 @@ class TrackWorstError(dfx.AbstractWrappedSolver):
             index = worst.steps // self.steps_per_interval
         index = jnp.minimum(index, self.boundaries.shape[0] - 1)
         columns = [
-            max_error(f(t1, y1, args), self.start[k]) for k, f in self.conserved.items()
+            max_error(self.conserved[k](t1, y1, args), self.start[k])
+            for k in sorted(self.conserved)
         ]
         work = worst.work
         if self.balance is not None:
