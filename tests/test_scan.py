@@ -109,12 +109,10 @@ def test_bad_times_raise():
     solver = dvi.StormerVerlet()
     terms = dvi.terms_for(solver, SCENE.lagrangian)
     y0 = SCENE.y0
-    with pytest.raises(ValueError, match="whole number of steps"):
-        dvi.solve_fixed_steps(terms, solver, 0.0, 1.0, 0.3, y0)
     with pytest.raises(ValueError, match="forwards"):
         dvi.solve_fixed_steps(terms, solver, 1.0, 0.0, 0.1, y0)
     with pytest.raises(ValueError, match="divides"):
-        dvi.solve_fixed_steps(terms, solver, 0.0, 1.0, 0.1, y0, n_save=3)
+        dvi.solve_fixed_steps(terms, solver, 0.0, 1.0, 0.1, y0, n_save=3)  # 10 steps
     with pytest.raises(ValueError, match="finite"):
         dvi.solve_fixed_steps(terms, solver, 0.0, np.inf, 0.1, y0)
     with pytest.raises(ValueError, match="known when it is traced"):
@@ -134,3 +132,23 @@ def test_study_fixed_step_path_equals_diffeqsolve_path():
             np.testing.assert_allclose(
                 a.errors[name], b.errors[name], rtol=1e-9, atol=1e-14
             )
+
+
+def test_uneven_step_count_as_constant_step_size_takes_it():
+    # (t1 - t0) / dt0 = 3.33: ConstantStepSize takes 4 steps, the first of dt0 and
+    # the others ending at fractions of the interval; so does solve_fixed_steps.
+    solver = dvi.MidpointVI()
+    terms = dvi.terms_for(solver, SCENE.lagrangian)
+    sol = dfx.diffeqsolve(
+        terms, solver, 0.0, 0.1, 0.03, SCENE.y0, saveat=dfx.SaveAt(steps=True)
+    )
+    fast = dvi.solve_fixed_steps(terms, solver, 0.0, 0.1, 0.03, SCENE.y0, n_save=4)
+    assert fast.num_steps == 4
+    np.testing.assert_array_equal(fast.ts[1:], sol.ts[:4])
+    assert (
+        max_abs_diff(
+            jax.tree.map(lambda x: x[1:], fast.ys),
+            jax.tree.map(lambda x: x[:4], sol.ys),
+        )
+        < 1e-14
+    )

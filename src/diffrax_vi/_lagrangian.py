@@ -387,12 +387,15 @@ def velocity(
     r"""The inverse Legendre map: the velocity $v$ with $\partial L / \partial v
     (t, q, v) = p$ at the state $y = (q, p)$.
 
-    A division by the mass for an [`diffrax_vi.AbstractSeparableLagrangian`][], one
+    A division by the mass for an [`diffrax_vi.AbstractSeparableLagrangian`][]; one
     linear solve with $\partial^2 L / \partial v^2$ for an
     [`diffrax_vi.AbstractQuadraticLagrangian`][] of at most 64 degrees of freedom,
-    and damped Newton iterations ([`diffrax_vi.Newton`][], dense or matrix-free by
-    size) otherwise. Where it factorises $\partial^2 L / \partial v^2$ (or the mass)
-    it checks that it is invertible to working precision.
+    or for any Lagrangian whose traced Hessian–vector products do not read $v$
+    (quadratic in $v$, whatever its class) beyond: a conjugate-gradient solve to
+    round-off; and damped Newton iterations ([`diffrax_vi.Newton`][], dense or
+    matrix-free by size) otherwise. Where it factorises
+    $\partial^2 L / \partial v^2$ (or the mass) it checks that it is invertible to
+    working precision.
 
     **Arguments:**
 

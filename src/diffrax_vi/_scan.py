@@ -47,9 +47,11 @@ class FixedStepSolution(eqx.Module):
     num_steps: Array
 
 
-def _count_steps(t0, t1, dt0) -> int:
+def _count_steps(t0, t1, dt0, dtype) -> int:
+    """The number of steps `diffrax.ConstantStepSize` takes: `ceil((t1 - t0) /
+    nextafter(dt0))` in the time dtype."""
     try:
-        t0, t1, dt0 = (float(np.asarray(x)) for x in (t0, t1, dt0))
+        t0, t1, dt0 = (np.asarray(x, dtype) for x in (t0, t1, dt0))
     except (
         TypeError,
         jax.errors.ConcretizationTypeError,
@@ -68,15 +70,7 @@ def _count_steps(t0, t1, dt0) -> int:
             f"t0 = {t0}, t1 = {t1}, dt0 = {dt0}. Use diffrax.diffeqsolve to integrate "
             "backwards."
         )
-    steps = (t1 - t0) / dt0
-    n = max(1, round(steps))
-    if abs(steps - n) > 1e-6 * n:
-        raise ValueError(
-            f"(t1 - t0) / dt0 = {steps} is not a whole number of steps: with "
-            "diffrax.ConstantStepSize the last step would be shortened. Choose dt0 = "
-            "(t1 - t0) / n."
-        )
-    return n
+    return int(np.ceil((t1 - t0) / np.nextafter(dt0, np.asarray(np.inf, dtype))))
 
 
 # Steps per iteration of the scan for a step without a loop of its own. Measured for
@@ -129,10 +123,10 @@ def solve_fixed_steps(
 
     - `terms`, `solver`, `t0`, `t1`, `dt0`, `y0`, `args`: as for
         `diffrax.diffeqsolve`. `t0`, `t1` and `dt0` must be known at trace time,
-        with `t1 > t0`, `dt0 > 0` and `(t1 - t0) / dt0` a whole number `n` of
-        steps.
-    - `n_save`: the number of equal intervals to save the state at the end of
-        (it must divide `n`).
+        with `t1 > t0` and `dt0 > 0`; the number of steps `n` is
+        `ConstantStepSize`'s, `ceil((t1 - t0) / dt0)`.
+    - `n_save`: the number of intervals of `n / n_save` steps to save the state at
+        the end of (it must divide `n`).
     - `unroll`: the steps per iteration of the scan (`jax.lax.scan`'s `unroll`).
         By default 4 for a step without a loop of its own (an explicit method),
         and 1 for one with a loop (a Newton iteration, a composition's substeps),
@@ -145,13 +139,13 @@ def solve_fixed_steps(
 
     **Raises:**
 
-    `ValueError` for times that are traced, not finite, backwards, or not a whole
-    number of steps, or an `n_save` that does not divide them.
+    `ValueError` for times that are traced, not finite or backwards, or an
+    `n_save` that does not divide the number of steps.
     """
     # The time dtype diffeqsolve would use.
     dtype = jnp.result_type(t0, t1, dt0)
     dtype = dtype if jnp.issubdtype(dtype, jnp.floating) else jnp.result_type(float)
-    n = _count_steps(t0, t1, dt0)
+    n = _count_steps(t0, t1, dt0, dtype)
     if not isinstance(n_save, int) or n_save < 1 or n % n_save:
         raise ValueError(
             f"n_save = {n_save!r} must be a positive integer that divides the {n} "
