@@ -19,6 +19,8 @@ over N = 256 ... 4096 (least squares on log-log), and the targets of issue 13:
 Pin it to one core for stable figures. Minutes.
 
 Run: `taskset -c 1 python benchmarks/scaling.py [--sizes 16,64,256,1024,4096]`.
+`--figure PATH` also draws the tables (log-log); with `--from-output FILE` it draws
+them from a previous run's printed output instead of measuring again.
 """
 
 import argparse
@@ -106,14 +108,62 @@ def table(title, sizes, times):
         print(f"{name:>26} {cells}  {exponent(sizes, row):8.2f}")
 
 
+def parse_tables(text):
+    """The tables a previous run printed: `{title: (sizes, {solver: times})}`, times
+    in seconds."""
+    tables, lines = {}, text.splitlines()
+    for i, line in enumerate(lines):
+        if line.endswith(": microseconds per step"):
+            sizes = [int(n) for n in lines[i + 1].split()[1:-1]]
+            rows = {}
+            for row in lines[i + 2 :]:
+                if not row.strip():
+                    break
+                cells = row.split()
+                name = " ".join(cells[: -len(sizes) - 1])
+                rows[name] = [1e-6 * float(c) for c in cells[-len(sizes) - 1 : -1]]
+            tables[line.split(":")[0]] = (sizes, rows)
+    return tables
+
+
+def draw(tables, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(tables), figsize=(6 * len(tables), 4.5))
+    for ax, (title, (sizes, rows)) in zip(np.atleast_1d(axes), tables.items()):
+        for name, times in rows.items():
+            ax.loglog(sizes, [1e6 * t for t in times], "o-", label=name, ms=3)
+        n = np.array([sizes[0], sizes[-1]], float)
+        ax.loglog(n, 10 * n / n[0], "k:", lw=1, label="slope 1")
+        ax.set_xlabel("degrees of freedom N")
+        ax.set_ylabel("microseconds per step")
+        ax.set_title(title)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    print(f"wrote {path}")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default="16,32,64,128,256,512,1024,2048,4096")
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--solvers", default=",".join(SOLVERS))
+    parser.add_argument("--figure", help="also draw the tables to this image file")
+    parser.add_argument(
+        "--from-output", help="draw --figure from this earlier run's printed output"
+    )
     add_xla_option(parser)
     args = parser.parse_args()
+    if args.from_output:
+        with open(args.from_output) as f:
+            draw(parse_tables(f.read()), args.figure or "scaling.png")
+        return
     print(apply_xla_option(args))
     sizes = [int(n) for n in args.sizes.split(",")]
     names = args.solvers.split(",")
@@ -149,6 +199,14 @@ def main():
     wire = {k: [v[n] for n in sizes] for k, v in wire.items()}
     table("chain, h = 0.05", sizes, chain)
     table("bead_wire (displacement 0.05), h = period / 40", sizes, wire)
+    if args.figure:
+        draw(
+            {
+                "chain, h = 0.05": (sizes, chain),
+                "bead_wire (displacement 0.05), h = period / 40": (sizes, wire),
+            },
+            args.figure,
+        )
 
     def at(name, n):
         return chain[name][sizes.index(n)] if name in chain and n in sizes else math.nan
