@@ -112,9 +112,10 @@ def solve_fixed_steps(
     stepsize_controller=diffrax.ConstantStepSize(), throw=False)` would: the same
     `solver.init` and `solver.step` calls at the same times (those of
     `diffrax.ConstantStepSize`: `t0 + dt0` first, then fractions `k / n` of
-    `t1 - t0`, and `t1` exactly last), so the states are `diffeqsolve`'s, bit for
-    bit in the cases tested. Faster, because the steps run in an unrolled
-    `jax.lax.scan` instead of `diffeqsolve`'s general loop
+    `t1 - t0`, and `t1` exactly last), so the states are `diffeqsolve`'s to
+    round-off (XLA may fuse the unrolled arithmetic differently). Faster, because
+    the steps run in an unrolled `jax.lax.scan` instead of `diffeqsolve`'s general
+    loop
     ([Benchmarks](../benchmarks.md#ensembles)).
 
     No dense output, events or progress meter: use `diffeqsolve` for those.
