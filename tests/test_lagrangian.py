@@ -156,3 +156,17 @@ def test_large_degenerate_affine_lagrangian_is_not_successful():
     q, p = jnp.zeros(100), jnp.ones(100)
     v, result = dvi.velocity(degenerate, 0.0, (q, p))
     assert result != dfx.RESULTS.successful
+
+
+def test_large_affine_legendre_map_does_not_see_the_units():
+    # Mass in units 1e8 times smaller: L and p scale by 1e8, the velocity does not;
+    # the CG tolerance, the diagonal estimate's floor and the Newton fallback's test
+    # are all relative, so the same path gives the same answer.
+    scene = dvi.scenes.bead_wire(100)
+    x = scene.y0[0] + 0.07 * jnp.sin(jnp.arange(100.0))
+    p = jnp.cos(0.3 * jnp.arange(100.0))
+    scaled = lambda t, q, v, args: 1e8 * scene.lagrangian(t, q, v, args)
+    v, result = dvi.velocity(scene.lagrangian, 0.0, (x, p))
+    v_scaled, result_scaled = dvi.velocity(scaled, 0.0, (x, 1e8 * p))
+    assert result == result_scaled == dfx.RESULTS.successful
+    assert jnp.max(jnp.abs(v - v_scaled)) < 1e-14 * jnp.max(jnp.abs(v))
