@@ -1,6 +1,11 @@
 import importlib.metadata
 
 from . import diagnostics as diagnostics, scenes as scenes, study as study
+from ._adaptive import (
+    PotentialMonitor as PotentialMonitor,
+    ReversibleController as ReversibleController,
+    ReversibleState as ReversibleState,
+)
 from ._constraint import project_onto_constraints as project_onto_constraints
 from ._discrete import (
     AbstractDiscreteLagrangian as AbstractDiscreteLagrangian,
