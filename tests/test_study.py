@@ -226,7 +226,15 @@ def test_cli_end_to_end(tmp_path, capsys):
         (["drift", "--solvers", ","], "--solvers names no solver"),
         (["drift", "--solvers", "MidpointVI,RK99"], "Unknown solver 'RK99'"),
         (["drift", "--scene", "blackhole"], "unknown scene"),
-        (["drift", "--solvers", "MidpointVI+PID"], "no error estimate"),
+        (["drift", "--solvers", "MidpointVI+PID"], "or MidpointVI+Adaptive"),
+        (["drift", "--solvers", "Tsit5+Adaptive"], "need a symmetric one-step"),
+        (
+            ["drift", "--scene", "pendulum", "--solvers", "StormerVerlet+Adaptive"],
+            "the scene 'pendulum' has none. Scenes with one: kepler",
+        ),
+        (["drift", "--param", "e=0.9"], "a parameter of the scene 'kepler'"),
+        (["drift", "--param", "eccentricity=high"], "'high' is not a number"),
+        (["drift", "--param", "eccentricity=1.5"], "bounded for eccentricity"),
         (
             ["drift", "--scene", "double_pendulum", "--solvers", "StormerVerlet"],
             "Partitioned terms exist only",
@@ -451,3 +459,55 @@ def test_seed_cli_reproduces_the_thesis_ratios(tmp_path):
     assert sum(close) >= 14
     for name in ("figure_5_1", "figure_5_2", "figure_5_3", "figure_1_1_1_2"):
         assert (out / f"{name}.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_reversible_adaptive_study_is_a_plain_solve_at_the_mean_step():
+    # KahanLi8+Adaptive on Kepler at e = 0.9: about the steps asked for, far lower
+    # energy error than the fixed step at the same count, and exactly the steps of a
+    # plain diffeqsolve at the dt0 the study calibrated.
+    from diffrax_vi.study import as_method, reversible_dt0
+
+    scene = kepler(0.9)
+    periods, spp = 20, 100
+    study = drift(
+        scene,
+        ["KahanLi8", "KahanLi8+Adaptive"],
+        periods=periods,
+        steps_per_period=spp,
+        n_save=20,
+    )
+    fixed, adaptive = study.runs
+    assert adaptive.reversible and not adaptive.symplectic
+    assert abs(adaptive.steps / (periods * spp) - 1) < 0.05
+    assert adaptive.max_error("energy") < 1e-6 * fixed.max_error("energy")
+    assert adaptive.max_error("angular_momentum") < 1e-14
+    method = as_method("KahanLi8+Adaptive")
+    t1 = scene.period * periods
+    dt0 = reversible_dt0(scene, method, t1, periods * spp, scene.y0, jnp.float64)
+    sol = dfx.diffeqsolve(
+        method.terms(scene),
+        method.solver,
+        0.0,
+        t1,
+        dt0,
+        scene.y0,
+        stepsize_controller=dvi.ReversibleController(scene.monitor),
+        saveat=dfx.SaveAt(steps=True),
+        max_steps=10 * periods * spp,
+    )
+    n = int(sol.stats["num_steps"])
+    assert adaptive.steps == n
+    q, p = (np.asarray(y[:n]) for y in sol.ys)
+    e = np.abs(0.5 * np.sum(p**2, axis=1) - 1 / np.linalg.norm(q, axis=1) + 0.5)
+    assert adaptive.max_error("energy") == pytest.approx(e.max(), rel=1e-8)
+
+
+def test_cli_scene_parameters(tmp_path, capsys):
+    out = tmp_path / "e09"
+    argv = ["drift", "--param", "eccentricity=0.9", *ARGS, "--out", str(out)]
+    assert main([*argv, "--solvers", "StormerVerlet,StormerVerlet+Adaptive"]) == 0
+    with open(out / "drift.csv") as f:
+        rows = {r["solver"]: r for r in csv.DictReader(f)}
+    # e = 0.9: the energy is still -1/2, but the fixed step is far off.
+    fixed = float(rows["StormerVerlet"]["max_energy_error"])
+    assert float(rows["StormerVerlet+Adaptive"]["max_energy_error"]) < fixed / 10

@@ -73,12 +73,34 @@ RTOL = _number(float, "a tolerance", 0.0, 1.0)
 SPREAD = _number(float, "a spread", 0.0, strict=False)
 
 
-def _scene(name: str):
+def _scene(name: str, params: list[str] | None = None):
+    """The scene `name` made with `--param NAME=VALUE` keyword arguments."""
+    import inspect
+
     from .scenes import SCENES
 
     if name not in SCENES:
         raise UsageError(f"unknown scene {name!r}. Choose from: {', '.join(SCENES)}.")
-    return SCENES[name]()
+    make = SCENES[name]
+    known = list(inspect.signature(make).parameters)
+    kwargs = {}
+    for text in params or []:
+        key, sep, value = text.partition("=")
+        key = key.strip()
+        if not sep or key not in known:
+            takes = ", ".join(known) if known else "no parameters"
+            raise UsageError(
+                f"--param {text!r}: expected NAME=VALUE with NAME a parameter of "
+                f"the scene {name!r} ({takes})."
+            )
+        try:
+            kwargs[key] = float(value)
+        except ValueError:
+            raise UsageError(f"--param {text!r}: {value!r} is not a number.") from None
+    try:
+        return make(**kwargs)
+    except ValueError as e:
+        raise UsageError(f"--param: {e}") from None
 
 
 def _methods(solvers: str, rtol: float, scene):
@@ -154,7 +176,7 @@ def _drift(args: argparse.Namespace) -> int:
     from .study import drift
     from .study._drift import check_drift, check_methods
 
-    scene = _scene(args.scene)
+    scene = _scene(args.scene, args.param)
     methods = _methods(args.solvers, args.rtol, scene)
     _study(check_methods, scene=scene, methods=methods)
     _study(
@@ -193,7 +215,7 @@ def _work_precision(args: argparse.Namespace) -> int:
     from .study import work_precision
     from .study._checks import step_count
 
-    scene = _scene(args.scene)
+    scene = _scene(args.scene, args.param)
     methods = _methods(args.solvers, 1e-8, scene)
     for spp in args.steps_per_period:
         _study(step_count, periods=args.periods, steps_per_period=spp)
@@ -235,10 +257,19 @@ def _output(parser: argparse.ArgumentParser) -> None:
 def _common(parser: argparse.ArgumentParser, solvers: str) -> None:
     parser.add_argument("--scene", default="kepler", help="scene to integrate")
     parser.add_argument(
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a parameter of the scene (repeatable), e.g. eccentricity=0.9 for kepler",
+    )
+    parser.add_argument(
         "--solvers",
         default=solvers,
         help="comma-separated solver names; the suffix +PID steps an adaptive "
-        "solver with a PIDController (e.g. Tsit5+PID)",
+        "Runge-Kutta solver with a PIDController (e.g. Tsit5+PID), +Adaptive a "
+        "symmetric one with reversible steps on the scene's monitor (e.g. "
+        "KahanLi8+Adaptive; --steps-per-period is then the mean)",
     )
     parser.add_argument("--dtype", choices=DTYPES, default="float64")
     _output(parser)
@@ -270,7 +301,10 @@ def _parser() -> argparse.ArgumentParser:
         help="horizon, periods (periods x steps-per-period must be a whole number)",
     )
     drift.add_argument(
-        "--steps-per-period", type=COUNT, default=200, help="fixed steps per period"
+        "--steps-per-period",
+        type=COUNT,
+        default=200,
+        help="fixed steps per period (the mean for +Adaptive solvers)",
     )
     drift.add_argument(
         "--save",
@@ -300,8 +334,9 @@ def _parser() -> argparse.ArgumentParser:
         "work-precision",
         help="wall time against energy error and global error",
         description=(
-            "Run each fixed-step solver at several steps per period, and each +PID "
-            "solver at several tolerances, over the same horizon; write "
+            "Run each fixed-step or +Adaptive solver at several (mean) steps per "
+            "period, and each +PID solver at several tolerances, over the same "
+            "horizon; write "
             "work_precision.csv, .json and .png."
         ),
         formatter_class=formatter,

@@ -41,6 +41,7 @@ from ._solar import (
     NBodyLagrangian as NBodyLagrangian,
     outer_solar_system as outer_solar_system,
 )
+from ._three_body import pythagorean_three_body as pythagorean_three_body
 from ._wire import bead_wire as bead_wire, BeadWireLagrangian as BeadWireLagrangian
 
 
@@ -55,6 +56,7 @@ SCENES = {
     "henon_heiles": henon_heiles,
     "fpu": fpu,
     "outer_solar_system": outer_solar_system,
+    "pythagorean_three_body": pythagorean_three_body,
     "learned": learned,
     "bead_wire": bead_wire,
     "forced_duffing": forced_duffing,

@@ -29,6 +29,9 @@ class Scene(eqx.Module):
     - `force`: the applied force `force(t, q, v, args)`, or `None`.
     - `constraint`: the holonomic constraints `constraint(t, q, args)`, or `None`.
     - `args`: the default `args` of a solve (a control sequence, say), or `None`.
+    - `monitor`: a step-size monitor `monitor(t, y, args) -> scalar` for reversible
+        adaptive steps ([`diffrax_vi.ReversibleController`][]; the study's
+        `+Adaptive` methods), or `None` where fixed steps suit the motion.
     """
 
     name: str = eqx.field(static=True)
@@ -40,6 +43,7 @@ class Scene(eqx.Module):
     force: Callable | None = None
     constraint: Callable | None = None
     args: PyTree = None
+    monitor: Callable | None = None
 
     def term(self) -> LagrangianTerm:
         """The scene's [`diffrax_vi.LagrangianTerm`][], with its force and

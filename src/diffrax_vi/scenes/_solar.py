@@ -3,6 +3,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._adaptive import PotentialMonitor
 from .._lagrangian import AbstractSeparableLagrangian
 from ._scene import Scene
 
@@ -75,13 +76,15 @@ def outer_solar_system() -> Scene:
     angular momentum (vectors of size about 1e-5; the study reports the largest
     component error)."""
     mass = jnp.asarray(MASSES[:, None])
+    lagrangian = NBodyLagrangian(mass, GRAVITATIONAL_CONSTANT)
     return Scene(
         name="outer_solar_system",
-        lagrangian=NBodyLagrangian(mass, GRAVITATIONAL_CONSTANT),
+        lagrangian=lagrangian,
         y0=(jnp.asarray(POSITIONS), mass * jnp.asarray(VELOCITIES)),
         period=JUPITER_PERIOD,
         invariants={
             "linear_momentum": _linear_momentum,
             "angular_momentum": _angular_momentum,
         },
+        monitor=PotentialMonitor(lagrangian),
     )

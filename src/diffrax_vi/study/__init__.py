@@ -7,6 +7,7 @@ from ._methods import (
     Method as Method,
     SOLVERS as SOLVERS,
 )
+from ._run import reversible_dt0 as reversible_dt0
 from ._work_precision import (
     reference_state as reference_state,
     work_precision as work_precision,

@@ -37,6 +37,9 @@ class DriftRun:
     - `errors`: invariant name -> the largest `|I(t) - I(0)|` over the steps in the
         interval ending at each of `ts` (0 at the start; the largest component of a
         vector invariant; the worst ensemble member; NaN after a failure).
+    - `symplectic`: a symplectic method at the study's fixed step.
+    - `reversible`: a symmetric method stepped by a
+        [`diffrax_vi.ReversibleController`][] (`+Adaptive`).
     """
 
     solver: str
@@ -46,6 +49,7 @@ class DriftRun:
     ts: np.ndarray
     errors: dict[str, np.ndarray]
     symplectic: bool = False
+    reversible: bool = False
 
     def max_error(self, name: str) -> float:
         return float(np.max(self.errors[name]))
@@ -111,7 +115,8 @@ class DriftStudy:
         """One line computed from the table: the run with the lowest energy error, the
         one with the lowest energy error times wall time (the best error for the
         work), and how the errors of the non-symplectic runs grow from the first to
-        the last tenth of the horizon against those of the symplectic runs."""
+        the last tenth of the horizon against those of the symplectic runs (and of
+        the reversible adaptive runs, `+Adaptive`)."""
         ok = [r for r in self.runs if r.result == "successful"]
         if not ok:
             return "Verdict: every run failed (see the result column)."
@@ -133,12 +138,15 @@ class DriftStudy:
             low, high = min(values), max(values)
             return f"x{low:.2g}" if high < 1.5 * low else f"x{low:.2g} to x{high:.2g}"
 
-        others = [r for r in ok if not r.symplectic]
+        others = [r for r in ok if not (r.symplectic or r.reversible)]
         geometric = [r for r in ok if r.symplectic]
+        reversible = [r for r in ok if r.reversible]
         if others:
             phrase = f"non-symplectic {what} errors grow {growth(others)}"
             if geometric:
                 phrase += f", symplectic ones {growth(geometric)}"
+            if reversible:
+                phrase += f", reversible adaptive ones {growth(reversible)}"
             parts.append(phrase + " from the first to the last tenth of the horizon")
         failed = len(self.runs) - len(ok)
         if failed:
@@ -315,8 +323,9 @@ def drift(
                 result=outcome.result,
                 ts=np.linspace(0, t1, n_save + 1),
                 errors=outcome.errors(),
-                symplectic=method.rtol is None
+                symplectic=method.fixed
                 and isinstance(method.solver, AbstractSymplecticSolver),
+                reversible=method.reversible,
             )
         )
     return DriftStudy(

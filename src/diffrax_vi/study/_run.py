@@ -1,4 +1,5 @@
 import dataclasses
+import math
 import time
 
 import diffrax as dfx
@@ -86,6 +87,53 @@ def columns(scene: Scene) -> list[str]:
 MAX_ADAPTIVE_STEPS_PER_SAVE = 4096
 
 
+def reversible_dt0(
+    scene: Scene, method: Method, t1: float, n_steps: int, y0: PyTree, dtype
+) -> Array:
+    """The `dt0` at which `method`'s [`diffrax_vi.ReversibleController`][] takes
+    `n_steps` steps over `[0, t1]` on average: its steps over the first ten periods
+    (or `t1` if shorter) counted at a trial `dt0`, which is rescaled (the count is
+    inversely proportional to `dt0`) and counted again. Separate solves: the
+    measured run is a plain one at the `dt0` found."""
+    span = min(t1, 10 * scene.period)
+    wanted = n_steps * span / t1
+    terms = method.terms(scene)
+    controller = method.controller(scene)
+
+    @eqx.filter_jit
+    def count(dt0):
+        sol = dfx.diffeqsolve(
+            terms,
+            method.solver,
+            jnp.zeros((), dtype),
+            jnp.asarray(span, dtype),
+            dt0,
+            y0,
+            args=scene.args,
+            stepsize_controller=controller,
+            saveat=dfx.SaveAt(t1=True),
+            max_steps=max(4096, 64 * math.ceil(wanted)),
+            throw=False,
+        )
+        ok = sol.result == dfx.RESULTS.successful
+        return jnp.where(ok, sol.stats["num_steps"], 0)
+
+    # dt0 is the step where the density is 1, at the start: the mean step is a
+    # trial that may be far too large there (at Kepler's pericentre), so shrink it
+    # until the count succeeds, then rescale it twice.
+    dt0, rescaled = t1 / n_steps, 0
+    for _ in range(12):
+        taken = int(count(jnp.asarray(dt0, dtype)))
+        if taken == 0:
+            dt0 /= 8
+        elif rescaled == 2:
+            break
+        else:
+            dt0, rescaled = dt0 * taken / wanted, rescaled + 1
+    return jnp.asarray(dt0, dtype)
+    return dt0
+
+
 def run(
     scene: Scene,
     method: Method,
@@ -102,9 +150,10 @@ def run(
     each conserved quantity over each of `n_save` equal intervals, and the final
     state. Fixed steps take exactly `n_steps` (which `n_save` must divide); adaptive
     ones take the steps they take in a plain `diffeqsolve` with the same controller
-    (at most `MAX_ADAPTIVE_STEPS_PER_SAVE * n_save`). With `ensemble=True`, `y0` has
-    a leading axis of members and the solve is vmapped over it (and runs on every
-    device `y0` is sharded over).
+    (at most `MAX_ADAPTIVE_STEPS_PER_SAVE * n_save`): reversible ones about
+    `n_steps`, from the `dt0` of [`diffrax_vi.study.reversible_dt0`][]. With
+    `ensemble=True`, `y0` has a leading axis of members and the solve is vmapped
+    over it (and runs on every device `y0` is sharded over).
 
     The run is one `diffeqsolve`, as a user would write it: splitting it into one
     solve per interval made an adaptive controller end every interval on its boundary
@@ -126,10 +175,18 @@ def run(
     second."""
     conserved = scene.conserved()
     terms = method.terms(scene)
+    controller = method.controller(scene)
     args = scene.args
-    fixed = method.rtol is None
+    fixed = method.fixed
     ts = jnp.linspace(0, t1, n_save + 1, dtype=dtype)
     h = jnp.asarray(t1 / n_steps, dtype)
+    dt0 = h if fixed else None
+    max_steps = None if fixed else MAX_ADAPTIVE_STEPS_PER_SAVE * n_save
+    if method.reversible:
+        first = jax.tree.map(lambda x: x[0], y0) if ensemble else y0
+        dt0 = reversible_dt0(scene, method, t1, n_steps, first, dtype)
+        # Room for the steps asked for, twice over, as diffeqsolve needs a bound.
+        max_steps = max(max_steps, 2 * n_steps)
     # Known when traced, as `solve_fixed_steps` needs them.
     times = tuple(np.asarray(x) for x in (ts[0], ts[-1], h))
     meter = dfx.TqdmProgressMeter() if progress else dfx.NoProgressMeter()
@@ -147,12 +204,12 @@ def run(
             solver,
             ts[0],
             ts[-1],
-            h if fixed else None,
+            dt0,
             y0,
             args=args,
             saveat=saveat,
-            stepsize_controller=method.controller(),
-            max_steps=None if fixed else MAX_ADAPTIVE_STEPS_PER_SAVE * n_save,
+            stepsize_controller=controller,
+            max_steps=max_steps,
             throw=False,
             **kwargs,
         )
