@@ -63,6 +63,12 @@ STUDIES = {
         400,
         None,
     ),
+    "pythagorean_three_body": (
+        ["KahanLi8", "StormerVerlet+Adaptive", "KahanLi8+Adaptive", "Dopri8+PID"],
+        7,
+        1000,
+        None,
+    ),
     "learned": (["MidpointVI", "StormerVerlet", "Tsit5"], 1000, 50, None),
     "bead_wire": (["MidpointVI", "GaussVPRK2", "Tsit5", "Dopri8"], 200, 40, None),
     "forced_duffing": (

@@ -151,6 +151,38 @@ def test_output_at_physical_times():
     )
 
 
+@pytest.mark.parametrize("backward", [False, True])
+def test_landing_on_output_times(backward):
+    # Interpolated between steps, the output has the cubic interpolant's error;
+    # with `step_ts` the steps land on the output times, and the saved states are the
+    # method's own (kahan_li8, Kepler e = 0.9, 10 orbits).
+    solver = dvi.Composition(dvi.StormerVerlet(), "kahan_li8")
+    ts = jnp.linspace(0.0, 10 * TWO_PI, 41)
+    t0, t1, y0, dt0 = 0.0, 10 * TWO_PI, KEPLER.y0, 0.002
+    if backward:
+        ts, t0, t1, dt0 = ts[::-1], t1, t0, -dt0
+        y0 = KEPLER.exact(10 * TWO_PI)
+
+    def energy_error(controller):
+        sol = solve(
+            t1,
+            dt0,
+            y0=y0,
+            t0=t0,
+            solver=solver,
+            controller=controller,
+            saveat=dfx.SaveAt(ts=ts),
+        )
+        np.testing.assert_array_equal(sol.ts, ts)
+        energies = jax.vmap(KEPLER.energy, (0, 0, None))(sol.ts, sol.ys, None)
+        return float(jnp.max(jnp.abs(energies + 0.5)))
+
+    interpolated = energy_error(dvi.ReversibleController(MONITOR))
+    landed = energy_error(dvi.ReversibleController(MONITOR, step_ts=ts))
+    assert interpolated > 1e-7
+    assert landed < 1e-11
+
+
 def test_jit_vmap_grad():
     @eqx.filter_jit
     def final_q(p0y):

@@ -185,8 +185,10 @@ def run(
     if method.reversible:
         first = jax.tree.map(lambda x: x[0], y0) if ensemble else y0
         dt0 = reversible_dt0(scene, method, t1, n_steps, first, dtype)
-        # Room for the steps asked for, twice over, as diffeqsolve needs a bound.
-        max_steps = max(max_steps, 2 * n_steps)
+        # Room for the steps asked for, four times over (the calibration counts a
+        # different trajectory where the motion is chaotic), as diffeqsolve needs a
+        # bound.
+        max_steps = max(max_steps, 4 * n_steps)
     # Known when traced, as `solve_fixed_steps` needs them.
     times = tuple(np.asarray(x) for x in (ts[0], ts[-1], h))
     meter = dfx.TqdmProgressMeter() if progress else dfx.NoProgressMeter()
