@@ -68,7 +68,7 @@ PROBLEMS = {
             "StormerVerlet": [10_000, 100_000],
             "KahanLi8": [2_000, 20_000],
             "StormerVerlet+Adaptive": [1_000, 3_000, 10_000],
-            "KahanLi8+Adaptive": [300, 1_000, 3_000],
+            "KahanLi8+Adaptive": [300, 1_000, 3_000, 10_000],
         },
         [1e-8, 1e-10, 1e-12, 1e-13],
         70,
