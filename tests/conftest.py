@@ -17,6 +17,21 @@ def getkey():
 # method or Lagrangian, a property the default suite already checks for another; they
 # run with `-m slow` (test ids, or their prefix before `[` ... `-`).
 SLOW = (
+    # tests/test_adaptive.py checks the order with Stormer-Verlet, adaptation of
+    # implicit solvers with MidpointVI.
+    "test_adaptive.py::test_order_in_the_fictive_step[yoshida4",
+    "test_adaptive.py::test_implicit_solvers_adapt_too[GaussVPRK2",
+    # The guard's no-false-alarm and the relativistic Legendre map: one case each
+    # in the default suite.
+    "test_failures.py::test_healthy_linearized_runs_pass_the_guard[pendulum",
+    "test_failures.py::test_healthy_linearized_runs_pass_the_guard[henon_heiles",
+    "test_guards.py::test_relativistic_lagrangian_runs_in_every_solver[LinearizedVI",
+    # Checked for MidpointVI and the other solvers in the default suite.
+    "test_resume.py::test_jump_discards_a_stale_state[LinearizedVI-solver3",
+    "test_properties.py::test_time_reversible[GaussVPRK(2)",
+    "test_stability.py::test_float32_end_to_end[LobattoVPRK(3)",
+    # The same NBodyLagrangian as outer_solar_system's.
+    "test_surface.py::test_scene_parameters_are_differentiable[pythagorean_three_body",
     "test_seed.py::test_linearized_backward_vmap_grad",
     "test_seed.py::test_theorem_1_midpoint_on_lift_is_tangent_of_flow[double-pendulum",
     "test_seed.py::test_theorem_2_presymplectic_on_S[double-pendulum",

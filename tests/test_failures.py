@@ -159,20 +159,22 @@ def test_centered_linearized_on_kepler_fails_instead_of_exploding():
     assert guarded.steps < 1000
 
 
-def test_healthy_linearized_runs_pass_the_guard():
-    from diffrax_vi.scenes import duffing, henon_heiles, pendulum
+@pytest.mark.parametrize(
+    "name, spp", [("duffing", 8), ("pendulum", 12), ("henon_heiles", 12)]
+)
+def test_healthy_linearized_runs_pass_the_guard(name, spp):
+    from diffrax_vi.scenes import SCENES
     from diffrax_vi.study import drift
 
-    for scene, spp in ((duffing(), 8), (pendulum(), 12), (henon_heiles(), 12)):
-        linearized, midpoint = drift(
-            scene,
-            [dvi.LinearizedVI(velocity="centered"), dvi.MidpointVI()],
-            periods=50,
-            steps_per_period=spp,
-            n_save=10,
-        ).runs
-        assert linearized.result == "successful" and linearized.growth() < 1.5
-        # Second order like the midpoint VI it linearizes, with a larger constant
-        # (measured 3.5x, 3.4x and 4.7x at these coarse steps).
-        ratio = linearized.max_error("energy") / midpoint.max_error("energy")
-        assert 1 < ratio < 6
+    linearized, midpoint = drift(
+        SCENES[name](),
+        [dvi.LinearizedVI(velocity="centered"), dvi.MidpointVI()],
+        periods=50,
+        steps_per_period=spp,
+        n_save=10,
+    ).runs
+    assert linearized.result == "successful" and linearized.growth() < 1.5
+    # Second order like the midpoint VI it linearizes, with a larger constant
+    # (measured 3.5x, 3.4x and 4.7x at these coarse steps).
+    ratio = linearized.max_error("energy") / midpoint.max_error("energy")
+    assert 1 < ratio < 6

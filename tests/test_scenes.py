@@ -175,3 +175,11 @@ def test_pythagorean_three_body():
     q = reference(scene.term(), scene.y0, 15.82992)[0]
     i, j = np.triu_indices(3, 1)
     assert float(jnp.min(jnp.linalg.norm(q[i] - q[j], axis=-1))) < 1e-3
+
+
+def test_monitored_lists_the_scenes_with_a_monitor():
+    # (learned trains, and has none.)
+    with_monitor = {n for n in NAMES if scenes.SCENES[n]().monitor is not None}
+    with_monitor |= {"pythagorean_three_body"}
+    assert set(scenes.MONITORED) == with_monitor
+    assert scenes.pythagorean_three_body().monitor is not None

@@ -63,3 +63,5 @@ SCENES = {
     "cartesian_pendulum": cartesian_pendulum,
     "four_bar": four_bar,
 }
+# The scenes with a step-size monitor (`Scene.monitor`), for `+Adaptive` methods.
+MONITORED = ("kepler", "outer_solar_system", "pythagorean_three_body")

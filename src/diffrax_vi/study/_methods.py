@@ -84,12 +84,11 @@ class Method:
 def monitor_of(scene: Scene, method: str):
     """The scene's step-size monitor, or a `ValueError` naming the scenes with one."""
     if scene.monitor is None:
-        from ..scenes import SCENES
+        from ..scenes import MONITORED
 
-        with_monitor = [n for n, make in SCENES.items() if make().monitor is not None]
         raise ValueError(
             f"{method} steps by a monitor of the motion, and the scene "
-            f"{scene.name!r} has none. Scenes with one: {', '.join(with_monitor)}; "
+            f"{scene.name!r} has none. Scenes with one: {', '.join(MONITORED)}; "
             "or give a Scene a `monitor` (e.g. diffrax_vi.PotentialMonitor(L) for "
             "gravity)."
         )
