@@ -30,8 +30,16 @@ SLOW = (
     "test_resume.py::test_jump_discards_a_stale_state[LinearizedVI-solver3",
     "test_properties.py::test_time_reversible[GaussVPRK(2)",
     "test_stability.py::test_float32_end_to_end[LobattoVPRK(3)",
-    # The same NBodyLagrangian as outer_solar_system's.
+    # The same NBodyLagrangian as outer_solar_system's; one-degree-of-freedom
+    # scenes built like the oscillator's and the pendulum's.
     "test_surface.py::test_scene_parameters_are_differentiable[pythagorean_three_body",
+    "test_surface.py::test_scene_parameters_are_differentiable[falling_particle",
+    "test_surface.py::test_scene_parameters_are_differentiable[duffing",
+    # Each Runge-Kutta solver on the general term, and Tsit5 on the quadratic one.
+    "test_term.py::test_runge_kutta_solvers_integrate_the_same_term[quadratic-dopri8",
+    "test_term.py::test_runge_kutta_solvers_integrate_the_same_term[quadratic-kvaerno5",
+    # suzuki4 checks composition under jit/vmap/grad, test_properties Gauss's vmap.
+    "test_higher_order.py::test_jit_vmap_grad[gauss2",
     "test_seed.py::test_linearized_backward_vmap_grad",
     "test_seed.py::test_theorem_1_midpoint_on_lift_is_tangent_of_flow[double-pendulum",
     "test_seed.py::test_theorem_2_presymplectic_on_S[double-pendulum",

@@ -121,9 +121,10 @@ def test_bad_times_raise():
 
 def test_study_fixed_step_path_equals_diffeqsolve_path():
     # Without a progress meter the study runs fixed steps in the scan; with one, in
-    # diffeqsolve. The recorded errors are the same to round-off.
+    # diffeqsolve. The recorded errors are the same to round-off. (MidpointVI's
+    # steps in the scan: test_same_steps_as_diffeqsolve.)
     kwargs = dict(periods=2, steps_per_period=50, n_save=4, ensemble=2)
-    methods = ["StormerVerlet", "MidpointVI"]
+    methods = ["StormerVerlet"]
     fast = drift(SCENE, methods, **kwargs)
     slow = drift(SCENE, methods, progress=True, **kwargs)
     for a, b in zip(fast.runs, slow.runs):

@@ -23,11 +23,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-from diffrax._term import WrapTerm
 from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 
 from ._custom_types import Args, RealScalarLike
 from ._lagrangian import AbstractLagrangian, AbstractSeparableLagrangian
+from ._private_api import WrapTerm
 
 
 def _unwrap(terms: PyTree) -> PyTree:
