@@ -258,10 +258,12 @@ def drift(
 
     - `scene`: a [`diffrax_vi.scenes.Scene`][].
     - `solvers`: names from `diffrax_vi.study.SOLVERS` (with the suffix `+PID` for a
-        `PIDController` at tolerance `rtol`), solver instances, or
+        `PIDController` at tolerance `rtol`, or `+Adaptive` for reversible adaptive
+        steps on the scene's monitor), solver instances, or
         [`diffrax_vi.study.Method`][]s.
     - `periods`: horizon, in the scene's periods.
-    - `steps_per_period`: fixed steps per period.
+    - `steps_per_period`: fixed steps per period (the mean for `+Adaptive`
+        methods).
     - `n_save`: how many intervals to record the largest errors over; must divide
         the number of steps. An adaptive method may take at most 4096 steps per
         interval (a step size collapsing to nothing then fails the run rather than
