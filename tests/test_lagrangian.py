@@ -121,6 +121,36 @@ def test_quadratic_in_velocity_is_structural_and_sound():
         assert not quadratic_in_velocity(as_lagrangian(lagrangian), 0.0, q, None)
 
 
+def test_momentum_reads_position_is_structural_and_sound():
+    # dL/dv free of q (constant mass, a relativistic particle) makes the Jacobians
+    # of the midpoint and linearized steps symmetric: conjugate gradients. A mass
+    # that depends on q (the bead wire, the double pendulum) or a magnetic term
+    # A(q).v does not.
+    from diffrax_vi._lagrangian import as_lagrangian, momentum_reads_position
+
+    q = jnp.linspace(0.1, 0.5, 3)
+    v = jnp.linspace(-0.2, 0.3, 3)
+    constant_mass = [
+        lambda t, q, v, args: 0.5 * jnp.sum(jnp.arange(1.0, 4.0) * v**2) - q @ q,
+        lambda t, q, v, args: -jnp.sqrt(1 - jnp.sum(v**2)) - jnp.sum(jnp.cos(q)),
+        # Reads q, but not in dL/dv: still free of q.
+        lambda t, q, v, args: (
+            jnp.sum(jnp.sin(q)) * jnp.sum(jnp.exp(0.0 * q)) + 0.5 * v @ v
+        ),
+    ]
+    reads_q = [
+        DoublePendulum(),
+        lambda t, q, v, args: 0.5 * jnp.sum(v**2) + jnp.dot(jnp.sin(q), v),
+        dvi.scenes.bead_wire(3).lagrangian,
+    ]
+    for lagrangian in constant_mass:
+        L = as_lagrangian(lagrangian)
+        assert not momentum_reads_position(L, 0.0, q, v, None)
+    for lagrangian in reads_q:
+        qq, vv = (q[:2], v[:2]) if isinstance(lagrangian, DoublePendulum) else (q, v)
+        assert momentum_reads_position(as_lagrangian(lagrangian), 0.0, qq, vv, None)
+
+
 def _wire_velocity(x, p, amplitude=0.2):
     # The bead wire's Legendre map in closed form: p = m (1 + y'(x)^2) v.
     slope = amplitude * 2 * jnp.pi * jnp.sin(2 * jnp.pi * x)

@@ -2,6 +2,7 @@
 matrix-free (Krylov) solves against the dense ones they replace beyond 16 unknowns."""
 
 import diffrax_vi as dvi
+import equinox as eqx
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
@@ -95,6 +96,55 @@ def test_krylov_newton_equals_dense_newton(make):
     auto = _solve(scene.lagrangian, make(None), scene.y0, h, 10)
     assert max_abs_diff(dense, auto) < 1e-13
     assert max_abs_diff(dense, scene.y0) > 1e-2
+
+
+class _Chain(eqx.Module):
+    """A chain of unequal masses written as a plain module: dL/dv does not read q,
+    so the midpoint and linearized steps' Jacobians are symmetric (CG)."""
+
+    def __call__(self, t, q, v, args):
+        mass = jnp.linspace(1.0, 3.0, q.shape[0])
+        r = jnp.diff(jnp.concatenate([jnp.zeros(1), q, jnp.zeros(1)]))
+        return 0.5 * jnp.sum(mass * v**2) - jnp.sum(0.5 * r**2 + 0.25 * r**4)
+
+
+def test_symmetric_krylov_equals_dense():
+    # 24 unknowns of a Lagrangian whose momentum is free of q: Newton's Krylov
+    # solves and LinearizedVI's one solve are conjugate gradients, and agree with
+    # the dense solves to round-off.
+    n = 24
+    y0 = (0.3 * jnp.sin(2.1 * jnp.arange(1.0, n + 1.0)), jnp.zeros(n))
+    pairs = [
+        (
+            dvi.MidpointVI(),
+            dvi.MidpointVI(root_finder=dvi.Newton(linear_solver="dense")),
+        ),
+        (
+            dvi.LinearizedVI(velocity="centered"),
+            dvi.LinearizedVI(velocity="centered", linear_solver=lx.LU()),
+        ),
+    ]
+    for krylov, dense in pairs:
+        a = _solve(_Chain(), krylov, y0, 0.05, 20)
+        b = _solve(_Chain(), dense, y0, 0.05, 20)
+        assert max_abs_diff(a, b) < 1e-12
+        assert max_abs_diff(a, y0) > 1e-2
+
+
+def test_krylov_falls_back_where_bicgstab_breaks_down():
+    # BiCGStab breaks down on this symmetric indefinite matrix (a swap of two
+    # coordinates); the solve falls back to CG on the normal equations.
+    from diffrax_vi._nonlinear import krylov_solve
+
+    a = jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
+    b = jnp.array([1.0, 0.0, 1.0])
+    direct = lx.linear_solve(
+        lx.MatrixLinearOperator(a), b, lx.BiCGStab(rtol=1e-12, atol=1e-12), throw=False
+    )
+    assert direct.result != lx.RESULTS.successful
+    x, result = krylov_solve(lambda w: a @ w, b, 1e-14, frozenset(), 30)
+    assert result == lx.RESULTS.successful
+    assert np.allclose(x, np.linalg.solve(a, b), rtol=0, atol=1e-14)
 
 
 def test_large_separable_midpoint_equals_dense_newton():

@@ -341,6 +341,16 @@ def quadratic_in_velocity(
     return not reads(hvp, zeros, zeros)
 
 
+def momentum_reads_position(
+    lagrangian: AbstractLagrangian, t: RealScalarLike, q: Q, v: V, args: Args
+) -> bool:
+    r"""Whether $\partial L/\partial v$ may depend on $q$, decided from its traced
+    program (structural and conservative, as `quadratic_in_velocity`). Where it
+    does not, $\partial^2 L/\partial q\,\partial v = 0$ and the Jacobians of the
+    midpoint step and of the linearized step are symmetric."""
+    return reads(lambda _q: momentum(lagrangian, t, _q, v, args), q)
+
+
 def _diagonal_estimate(matvec, like: PyTree) -> PyTree:
     """Positive weights approximating one over the diagonal of a symmetric matrix,
     from one product with the alternating vector `z = (1, -1, 1, ...)`: `z * (A z)`

@@ -184,15 +184,18 @@ def krylov_solve(
 ) -> tuple[PyTree, lx.RESULTS]:
     """`A^{-1} b` for the operator `matvec`, matrix-free, from the initial `guess`
     (zero if `None`): conjugate gradients where
-    `tags` say symmetric positive (semi)definite, else BiCGStab, and restarted
-    GMRES(20) where BiCGStab breaks down; to relative accuracy `rtol`, preconditioned
-    by positive diagonal weights `preconditioner`. (lineax's GMRES makes all 20
-    Arnoldi steps of a cycle before it tests convergence: 20 products where a nearly
-    diagonal Newton matrix needs 2, which made it 8x slower than BiCGStab at 1024
-    unknowns.)
+    `tags` say symmetric positive or negative (semi)definite, else BiCGStab, and
+    conjugate gradients on the normal equations where BiCGStab breaks down; to
+    relative accuracy `rtol`, preconditioned by positive diagonal weights
+    `preconditioner`. (lineax's GMRES makes all 20 Arnoldi steps of a cycle before it
+    tests convergence: 20 products where a nearly diagonal Newton matrix needs 2,
+    which made it 8x slower than BiCGStab at 1024 unknowns; and its least-squares
+    solve is a LAPACK call, which even as a branch never taken keeps XLA on CPU from
+    compiling a small loop whole: `MidpointVI` on the 32-bead wire, 58 us per step
+    with a GMRES fallback, 45 us with the normal equations.)
 
     The solve runs on `A / c` and `b / |b|`, with `c` the size of `A` along `b`:
-    lineax's tests are absolute (GMRES breaks down on a right-hand side below about
+    lineax's tests are absolute (GMRES broke down on a right-hand side below about
     1e-16) and its tolerances componentwise, so the solve must not see the units.
     In those units `atol = rtol`: a component of the solution that happens to be
     near zero then does not demand more than `rtol` of the whole (with `atol = 0`,
@@ -222,15 +225,13 @@ def krylov_solve(
         sol = lx.linear_solve(operator, b, solver, options=options, throw=False)
         return sol.value, sol.result
 
-    if lx.positive_semidefinite_tag in tags:
+    if tags & {lx.positive_semidefinite_tag, lx.negative_semidefinite_tag}:
         value, result = solve(lx.CG(rtol=rtol, atol=rtol, max_steps=max_steps))
     else:
         value, result = solve(lx.BiCGStab(rtol=rtol, atol=rtol, max_steps=max_steps))
-        gmres = lx.GMRES(
-            rtol=rtol, atol=rtol, max_steps=max_steps, restart=min(20, max_steps)
-        )
+        normal = lx.Normal(lx.CG(rtol=rtol, atol=rtol, max_steps=max_steps))
         failed = unvmap_any(result != lx.RESULTS.successful)
-        value, result = lax.cond(failed, lambda: solve(gmres), lambda: (value, result))
+        value, result = lax.cond(failed, lambda: solve(normal), lambda: (value, result))
     return jtu.tree_map(lambda x: x * (b_size / a_size), value), result
 
 
@@ -240,9 +241,10 @@ class Newton(AbstractVIRootFinder):
 
     Each iteration solves $J\Delta = r$ for the Jacobian $J$ of the residual: by LU
     on the dense Jacobian for at most 16 unknowns, else matrix-free by a Krylov method
-    on Jacobian–vector products (conjugate gradients where $J$ is symmetric positive
-    definite, as for the midpoint step of a separable Lagrangian and the Legendre
-    map; BiCGStab otherwise, GMRES where it breaks down), preconditioned by the
+    on Jacobian–vector products (conjugate gradients where $J$ is symmetric and
+    definite, as for the midpoint step of a Lagrangian whose momentum does not
+    depend on $q$ and for the Legendre map; BiCGStab otherwise, conjugate gradients
+    on the normal equations where it breaks down), preconditioned by the
     inverse mass and solved only as accurately as Newton's progress needs
     (Eisenstat–Walker forcing, choice 2). It
     stops after the update from an iterate whose residual is below `rtol` relative

@@ -156,7 +156,7 @@ def solve_step(
     never taken (`MidpointVI` on Kepler: 1.05 against 0.21 us per step)."""
     # A fallback by conjugate gradients (the midpoint step of a separable
     # Lagrangian) keeps the loop free of LAPACK calls; other stage equations keep the
-    # dense LU of small systems (BiCGStab with its GMRES fallback costs seconds of
+    # dense LU of small systems (BiCGStab with its fallback costs seconds of
     # compilation for a branch that stiff steps alone take).
     conjugate_gradients = (
         inverse_mass is not None and lx.positive_semidefinite_tag in tags

@@ -16,6 +16,7 @@ from .._discrete import (
     discrete_hamiltonian_map,
     MidpointRule,
 )
+from .._lagrangian import momentum_reads_position
 from .._misc import all_finite, state_dtype, tree_max_abs
 from .._nonlinear import (
     krylov_solve,
@@ -33,6 +34,9 @@ from .base import (
     VIState,
 )
 from .implicit import check_start, start_result
+
+
+SYMMETRIC_NEGATIVE = frozenset({lx.symmetric_tag, lx.negative_semidefinite_tag})
 
 
 class History(eqx.Module):
@@ -118,7 +122,7 @@ class LinearizedVI(AbstractVariationalSolver):
     def order(self, terms):
         return None
 
-    def _linear_solve(self, matvec, rhs, guess) -> tuple[PyTree, lx.RESULTS]:
+    def _linear_solve(self, matvec, rhs, guess, tags) -> tuple[PyTree, lx.RESULTS]:
         if self.linear_solver is not None or tree_size(rhs) <= NEWTON_DENSE_MAX:
             operator = lx.FunctionLinearOperator(matvec, jax.eval_shape(lambda: rhs))
             solver = lx.LU() if self.linear_solver is None else self.linear_solver
@@ -127,7 +131,7 @@ class LinearizedVI(AbstractVariationalSolver):
         # One solve with no Newton iteration to correct it: to near round-off.
         eps = float(jnp.finfo(tree_dtype(rhs)).eps)
         return krylov_solve(
-            matvec, rhs, 100 * eps, frozenset(), 10 * tree_size(rhs), guess=guess
+            matvec, rhs, 100 * eps, tags, 10 * tree_size(rhs), guess=guess
         )
 
     def _n_past(self) -> int:
@@ -243,7 +247,11 @@ class LinearizedVI(AbstractVariationalSolver):
         # each product of the linear solve differentiates it alone.
         _, matvec = jax.linearize(lambda c: momenta(x, y, c)[1], z)
         # From the last velocity, which differs from the new one by O(h).
-        u_z, linear_result = self._linear_solve(matvec, rhs, u_y)
+        # D2 D1 Ld is symmetric where dL/dv does not read q, and definite for steps
+        # that resolve the motion: conjugate gradients.
+        symmetric = not momentum_reads_position(lagrangian, tp0, z, u_y, step.args)
+        tags = SYMMETRIC_NEGATIVE if symmetric else frozenset()
+        u_z, linear_result = self._linear_solve(matvec, rhs, u_y, tags)
         dq = jtu.tree_map(lambda b, u, q: (b - q) + span * u, base, u_z, q0)
         # The discrete Legendre transform p_{k+1} = D2 Ld(q_k, q_{k+1}) through the
         # step's velocity: u_z itself for forward velocities, so nothing cancels.
@@ -280,8 +288,10 @@ LinearizedVI.__init__.__doc__ = r"""**Arguments:**
 - `discrete_lagrangian`: the discrete Lagrangian whose DEL equations are linearized:
     [`diffrax_vi.MidpointRule`][] (default) or [`diffrax_vi.TrapezoidalRule`][].
 - `linear_solver`: the lineax solver for the step's linear system. Defaults to LU
-    up to 16 degrees of freedom and BiCGStab (GMRES where it breaks down), to near
-    round-off, beyond.
+    up to 16 degrees of freedom and, beyond, a Krylov solve to near round-off:
+    conjugate gradients where $\partial L/\partial v$ does not depend on $q$ (the
+    matrix is then symmetric), else BiCGStab (conjugate gradients on the normal
+    equations where it breaks down).
 - `root_finder`, `root_find_max_steps`: for the backward variational steps that build
     the starting history (at `init` and after a jump); as for
     [`diffrax_vi.MidpointVI`][].

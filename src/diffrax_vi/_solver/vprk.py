@@ -38,6 +38,7 @@ from .._lagrangian import (
     AbstractSeparableLagrangian,
     broadcast_mass,
     lagrangian_value,
+    momentum_reads_position,
 )
 from .base import StepInputs
 from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC, SYMMETRIC_POSITIVE
@@ -305,11 +306,16 @@ class AbstractVPRK(AbstractImplicitVI):
         return self.tableau.stages == 1
 
     def jacobian_tags(self, step: StepInputs) -> frozenset:
-        # One stage of a separable Lagrangian: J = M - (h^2/4) d2L/dq2, symmetric, and
-        # positive definite for steps that resolve the motion.
-        # An applied force adds its own Jacobian, which need not be symmetric.
-        separable = isinstance(step.term.lagrangian, AbstractSeparableLagrangian)
-        if separable and self.tableau.stages == 1 and step.term.force is None:
+        # One stage: J = d2L/dv2 - (h^2/4) d2L/dq2 + (h/2) (Lqv - Lqv^T), symmetric
+        # where dL/dv does not read q (Lqv = 0: a separable Lagrangian, or any whose
+        # momentum is free of q by its trace), and definite for steps that resolve
+        # the motion. An applied force adds its own Jacobian, which need not be
+        # symmetric.
+        lagrangian = step.term.lagrangian
+        symmetric = isinstance(lagrangian, AbstractSeparableLagrangian) or not (
+            momentum_reads_position(lagrangian, step.t0, step.q0, step.p0, step.args)
+        )
+        if symmetric and self.tableau.stages == 1 and step.term.force is None:
             return SYMMETRIC_POSITIVE
         return frozenset()
 
