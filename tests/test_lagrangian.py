@@ -179,6 +179,56 @@ def test_large_affine_legendre_map_is_one_krylov_solve():
     assert jnp.max(jnp.abs(dq - exact)) < 1e-14
 
 
+def _coupled_mass(q, coupling):
+    # A tridiagonal mass matrix, positive definite (diagonally dominant), whose
+    # off-diagonal entries vanish where neighbours are level.
+    off = coupling * jnp.sin(q[1:] - q[:-1])
+    return jnp.diag(2.0 + jnp.sin(q) ** 2) + jnp.diag(off, 1) + jnp.diag(off, -1)
+
+
+def _coupled_lagrangian(coupling):
+    return lambda t, q, v, args: (
+        0.5 * v @ _coupled_mass(q, coupling) @ v + 0.3 * jnp.sum(v) - q @ q
+    )
+
+
+def test_large_coupled_mass_legendre_map_equals_dense_solve():
+    # 80 coordinates, a mass matrix that is not diagonal: the Jacobi step cannot
+    # solve it, conjugate gradients do, to round-off against a dense solve.
+    n = 80
+    q = 0.9 * jnp.sin(1.7 * jnp.arange(n, dtype=float))
+    p = jnp.cos(0.3 * jnp.arange(n, dtype=float))
+    lagrangian = _coupled_lagrangian(0.4)
+    v, result = dvi.velocity(lagrangian, 0.0, (q, p))
+    exact = jnp.linalg.solve(_coupled_mass(q, 0.4), p - 0.3)
+    assert result == dfx.RESULTS.successful
+    assert jnp.max(jnp.abs(v - exact)) < 1e-13 * jnp.max(jnp.abs(exact))
+
+
+def test_large_affine_velocity_derivative_where_the_mass_is_diagonal_by_accident():
+    # At level neighbours the mass is diagonal, so the Jacobi step alone solves the
+    # Legendre map, but its derivative along q is not diagonal: the velocity's
+    # Jacobian (forward and reverse) must still be the implicit one,
+    # -M^{-1} (dM/dq) v + M^{-1} dp/dq, as the dense solve's.
+    n = 80
+    q = jnp.full(n, 0.4)
+    p = jnp.cos(0.3 * jnp.arange(n, dtype=float))
+    lagrangian = _coupled_lagrangian(0.4)
+    velocity = lambda q: dvi.velocity(lagrangian, 0.0, (q, p))[0]
+    dense = lambda q: jnp.linalg.solve(_coupled_mass(q, 0.4), p - 0.3)
+    direction = jnp.sin(2.3 * jnp.arange(n, dtype=float))
+    _, exact = jax.jvp(dense, (q,), (direction,))
+    # The off-diagonal part of dM/dq matters: without it the derivative differs.
+    diagonal = jax.jvp(
+        lambda q: (p - 0.3) / jnp.diag(_coupled_mass(q, 0.4)), (q,), (direction,)
+    )[1]
+    assert jnp.max(jnp.abs(exact - diagonal)) > 1e-2
+    _, forward = jax.jit(lambda q, d: jax.jvp(velocity, (q,), (d,)))(q, direction)
+    assert jnp.max(jnp.abs(forward - exact)) < 1e-12
+    reverse = jax.jit(lambda q, d: jax.vjp(velocity, q)[1](d)[0])(q, direction)
+    assert jnp.max(jnp.abs(reverse - jax.vjp(dense, q)[1](direction)[0])) < 1e-12
+
+
 def test_large_degenerate_affine_lagrangian_is_not_successful():
     # No kinetic energy in the last of 100 coordinates: the conjugate-gradient solve
     # cannot converge, Newton's method takes over and reports failure.

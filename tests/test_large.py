@@ -1,8 +1,10 @@
 """Large systems: the bead-wire scene against hand-derived equations of motion, and the
 matrix-free (Krylov) solves against the dense ones they replace beyond 16 unknowns."""
 
+import diffrax as dfx
 import diffrax_vi as dvi
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
@@ -182,3 +184,65 @@ def test_linearized_krylov_equals_lu():
     b = _solve(scene.lagrangian, lu, scene.y0, h, 10)
     assert max_abs_diff(a, b) < 1e-11
     assert max_abs_diff(a, scene.y0) > 1e-3
+
+
+def test_gradient_through_a_large_generic_term_equals_hamiltons_equations():
+    # 80 beads, beyond the dense Legendre solves: Tsit5 on the scene's
+    # LagrangianTerm (velocities from the matrix-free inverse Legendre map, a mass
+    # that depends on q) and on Hamilton's equations written by hand,
+    # H = p^2 / (2 m(q)) - L(q, 0) with m(q) = d2L/dv2, are one ODE, so the
+    # derivatives of the final state with respect to the initial positions agree.
+    # Differentiating the matrix-free map used to raise (lineax does not
+    # differentiate a solve's options, here the q-dependent preconditioner).
+    scene = scenes.bead_wire(80, displacement=0.05)
+    lagrangian = scene.lagrangian
+    ones = jnp.ones(80)
+
+    def hamiltonian(q, p):
+        grad_v = jax.grad(lambda v: lagrangian(0.0, q, v, None))
+        mass = jax.jvp(grad_v, (0 * ones,), (ones,))[1]
+        return 0.5 * jnp.sum(p**2 / mass) - lagrangian(0.0, q, 0 * ones, None)
+
+    hamilton = dfx.ODETerm(
+        lambda t, y, args: (jax.grad(hamiltonian, 1)(*y), -jax.grad(hamiltonian)(*y))
+    )
+    terms = {"lagrangian": dvi.LagrangianTerm(lagrangian), "hamilton": hamilton}
+
+    def gradient(term):
+        def f(q0):
+            sol = dfx.diffeqsolve(
+                term,
+                dfx.Tsit5(),
+                0.0,
+                scene.period / 4,
+                scene.period / 40,
+                (q0, scene.y0[1]),
+            )
+            return sol.ys[0][-1, 40]
+
+        return jax.jit(jax.grad(f))(scene.y0[0])
+
+    generic, exact = gradient(terms["lagrangian"]), gradient(terms["hamilton"])
+    assert jnp.max(jnp.abs(generic - exact)) < 1e-12 * jnp.max(jnp.abs(exact))
+    assert jnp.max(jnp.abs(exact)) > 1e-2
+
+
+@pytest.mark.slow  # 30 s of compilation; the guess's derivative is also dropped in
+# the inverse Legendre map, which test_lagrangian differentiates.
+def test_linearized_krylov_gradient_equals_finite_differences():
+    # LinearizedVI's Krylov step is warm-started from the last velocity; the guess
+    # must not be differentiated (lineax does not differentiate a solve's options:
+    # differentiating it used to raise). Its gradient against central differences.
+    n = 24
+    y0 = (0.3 * jnp.sin(2.1 * jnp.arange(1.0, n + 1.0)), jnp.zeros(n))
+    solver = dvi.LinearizedVI(velocity="centered")
+
+    @jax.jit
+    def f(q0):
+        return final_state(_Chain(), solver, (q0, y0[1]), 0.5, 0.05)[0][n // 2]
+
+    gradient = jax.jit(jax.grad(f))(y0[0])
+    e = 1e-5 * jnp.eye(n)[n // 2]
+    central = (f(y0[0] + e) - f(y0[0] - e)) / 2e-5
+    assert abs(gradient[n // 2] - central) < 1e-8
+    assert abs(central) > 1e-1

@@ -11,7 +11,7 @@ import lineax as lx
 from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
-from ._misc import all_finite, reads, split_state, state_dtype
+from ._misc import all_finite, reads, split_state, state_dtype, tree_max_abs
 from ._nonlinear import (
     DENSE_MAX,
     krylov_solve,
@@ -377,22 +377,41 @@ def _diagonal_estimate(matvec, like: PyTree) -> PyTree:
 
 
 def _affine_velocity(lagrangian, t, q, p, args) -> tuple[V, dfx.RESULTS]:
-    """The velocity of a Lagrangian whose momentum is affine in `v`, matrix-free: one
-    conjugate-gradient solve of Hessian-vector products to round-off, preconditioned
-    by an estimate of the inverse diagonal. `breakdown` where it does not converge
-    (an ill-conditioned or indefinite d2L/dv2)."""
+    """The velocity of a Lagrangian whose momentum is affine in `v`, matrix-free: the
+    Jacobi step `D^{-1} b` from an estimate `D` of the diagonal of `d2L/dv2` where
+    it solves the system to round-off (a diagonal mass: point masses, beads on
+    wires), else one conjugate-gradient solve of Hessian-vector products to
+    round-off from there, preconditioned by `D^{-1}`. `breakdown` where it does not
+    converge (an ill-conditioned or indefinite d2L/dv2)."""
     zeros = jtu.tree_map(jnp.zeros_like, p)
     p_rest, hvp = jax.linearize(lambda v: momentum(lagrangian, t, q, v, args), zeros)
     rhs = jtu.tree_map(lambda a, b: a - b, p, p_rest)
     eps = float(jnp.finfo(state_dtype(p)).eps)
     n = sum(jnp.size(x) for x in jtu.tree_leaves(p))
-    v, linear_result = krylov_solve(
-        hvp,
-        rhs,
-        64 * eps,
-        frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag}),
-        min(n, _AFFINE_MAX_STEPS),
-        preconditioner=_diagonal_estimate(hvp, p),
+    weights = _diagonal_estimate(hvp, p)
+    jacobi = jtu.tree_map(lambda w, b: w * b, weights, rhs)
+    r = jtu.tree_map(lambda b, a: b - a, rhs, hvp(jacobi))
+    # One more Jacobi sweep: where D = d2L/dv2 it leaves the value at round-off and
+    # makes the derivative the implicit one, D^{-1} (db - dD v), even at a point
+    # where the mass happens to be diagonal and its derivative is not.
+    v = jtu.tree_map(lambda x, w, ri: x + w * ri, jacobi, weights, r)
+    solved = lax.stop_gradient(tree_max_abs(r) <= 64 * eps * tree_max_abs(rhs))
+
+    def conjugate_gradients():
+        return krylov_solve(
+            hvp,
+            rhs,
+            64 * eps,
+            frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag}),
+            min(n, _AFFINE_MAX_STEPS),
+            preconditioner=weights,
+            guess=v,
+        )
+
+    v, linear_result = lax.cond(
+        unvmap_any(~solved),
+        conjugate_gradients,
+        lambda: (v, lx.RESULTS.successful),
     )
     return v, dfx.RESULTS.where(
         linear_result == lx.RESULTS.successful,
@@ -427,8 +446,9 @@ def velocity(
     linear solve with $\partial^2 L / \partial v^2$ for an
     [`diffrax_vi.AbstractQuadraticLagrangian`][] of at most 64 degrees of freedom,
     or for any Lagrangian whose traced Hessian–vector products do not read $v$
-    (quadratic in $v$, whatever its class) beyond: a conjugate-gradient solve to
-    round-off; and damped Newton iterations ([`diffrax_vi.Newton`][], dense or
+    (quadratic in $v$, whatever its class) beyond: a division by the diagonal of
+    $\partial^2 L / \partial v^2$ where that solves it to round-off (a diagonal
+    mass), else a conjugate-gradient solve to round-off; and damped Newton iterations ([`diffrax_vi.Newton`][], dense or
     matrix-free by size) otherwise. Where it factorises
     $\partial^2 L / \partial v^2$ (or the mass) it checks that it is invertible to
     working precision.

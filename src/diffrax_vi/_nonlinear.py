@@ -201,6 +201,9 @@ def krylov_solve(
     near zero then does not demand more than `rtol` of the whole (with `atol = 0`,
     GMRES reported the lucky breakdown of an exactly captured solution as a
     failure)."""
+    # The guess and the preconditioner do not change the solution, and lineax does
+    # not differentiate its options: their derivatives are dropped.
+    guess, preconditioner = lax.stop_gradient((guess, preconditioner))
     b_size = _max_abs(rhs)
     b = jtu.tree_map(lambda x: x / b_size, rhs)
     weigh = lambda tree: (
