@@ -186,6 +186,7 @@ def test_linearized_krylov_equals_lu():
     assert max_abs_diff(a, scene.y0) > 1e-3
 
 
+@pytest.mark.slow  # 17 s; test_lagrangian differentiates the same map in 9 s
 def test_gradient_through_a_large_generic_term_equals_hamiltons_equations():
     # 80 beads, beyond the dense Legendre solves: Tsit5 on the scene's
     # LagrangianTerm (velocities from the matrix-free inverse Legendre map, a mass

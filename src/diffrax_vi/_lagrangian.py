@@ -448,10 +448,10 @@ def velocity(
     or for any Lagrangian whose traced Hessian–vector products do not read $v$
     (quadratic in $v$, whatever its class) beyond: a division by the diagonal of
     $\partial^2 L / \partial v^2$ where that solves it to round-off (a diagonal
-    mass), else a conjugate-gradient solve to round-off; and damped Newton iterations ([`diffrax_vi.Newton`][], dense or
-    matrix-free by size) otherwise. Where it factorises
-    $\partial^2 L / \partial v^2$ (or the mass) it checks that it is invertible to
-    working precision.
+    mass), else a conjugate-gradient solve to round-off; and damped Newton
+    iterations ([`diffrax_vi.Newton`][], dense or matrix-free by size) otherwise.
+    Where it factorises $\partial^2 L / \partial v^2$ (or the mass) it checks that
+    it is invertible to working precision.
 
     **Arguments:**
 

@@ -154,13 +154,12 @@ def solve_step(
     fallback is matrix-free at every size: a dense LU is a LAPACK call, and a loop
     containing one is never compiled whole by XLA on CPU, even where the branch is
     never taken (`MidpointVI` on Kepler: 1.05 against 0.21 us per step)."""
-    # A fallback by conjugate gradients (the midpoint step of a separable
-    # Lagrangian) keeps the loop free of LAPACK calls; other stage equations keep the
-    # dense LU of small systems (BiCGStab with its fallback costs seconds of
-    # compilation for a branch that stiff steps alone take).
-    conjugate_gradients = (
-        inverse_mass is not None and lx.positive_semidefinite_tag in tags
-    )
+    # Conjugate gradients where the Newton matrix is symmetric (the midpoint step of
+    # a Lagrangian whose momentum is free of q) keep the loop free of LAPACK calls
+    # at every size; other stage equations keep the dense LU of small systems
+    # (BiCGStab with its fallback costs seconds of compilation for a branch that
+    # stiff steps alone take).
+    conjugate_gradients = lx.positive_semidefinite_tag in tags
     # Second-order extrapolation; after a jump only the last step is trusted.
     guess = jtu.tree_map(
         lambda a, b: jnp.where(made_jump, a, 2 * a - b), state.last, state.before_last
@@ -345,8 +344,10 @@ IMPLICIT_ARGS_DOC = """- `root_finder`: how the implicit equations are solved: `
     (the default) chooses the fixed-point iteration for a separable Lagrangian, falling
     back to Newton's method where it does not converge (stiff steps; matrix-free,
     by conjugate gradients, for the midpoint step), and Newton's
-    method otherwise, with dense LU up to 16 unknowns and matrix-free Krylov
-    iterations beyond; or [`diffrax_vi.Newton`][], [`diffrax_vi.SimplifiedNewton`][],
+    method otherwise: by conjugate gradients at every size where its matrix is
+    symmetric (the midpoint step of a Lagrangian whose momentum does not depend on
+    $q$), else with dense LU up to 16 unknowns and matrix-free Krylov iterations
+    beyond; or [`diffrax_vi.Newton`][], [`diffrax_vi.SimplifiedNewton`][],
     [`diffrax_vi.FixedPoint`][], or any `optimistix.AbstractRootFinder` (given the
     residual relative to its largest term). Every tolerance is relative to the size
     of the momenta the equations balance, so results do not depend on the units.

@@ -123,7 +123,10 @@ class LinearizedVI(AbstractVariationalSolver):
         return None
 
     def _linear_solve(self, matvec, rhs, guess, tags) -> tuple[PyTree, lx.RESULTS]:
-        if self.linear_solver is not None or tree_size(rhs) <= NEWTON_DENSE_MAX:
+        # Conjugate gradients for a symmetric matrix at every size: no LAPACK call,
+        # so XLA compiles a small system's step whole.
+        dense = tree_size(rhs) <= NEWTON_DENSE_MAX and not tags
+        if self.linear_solver is not None or dense:
             operator = lx.FunctionLinearOperator(matvec, jax.eval_shape(lambda: rhs))
             solver = lx.LU() if self.linear_solver is None else self.linear_solver
             sol = lx.linear_solve(operator, rhs, solver, throw=False)
@@ -287,11 +290,11 @@ LinearizedVI.__init__.__doc__ = r"""**Arguments:**
     `"centered"` (§5.6, $u_k = (q_{k+1} - q_{k-1})/(2h)$).
 - `discrete_lagrangian`: the discrete Lagrangian whose DEL equations are linearized:
     [`diffrax_vi.MidpointRule`][] (default) or [`diffrax_vi.TrapezoidalRule`][].
-- `linear_solver`: the lineax solver for the step's linear system. Defaults to LU
-    up to 16 degrees of freedom and, beyond, a Krylov solve to near round-off:
-    conjugate gradients where $\partial L/\partial v$ does not depend on $q$ (the
-    matrix is then symmetric), else BiCGStab (conjugate gradients on the normal
-    equations where it breaks down).
+- `linear_solver`: the lineax solver for the step's linear system. Defaults to
+    conjugate gradients to near round-off at every size where $\partial L/\partial v$
+    does not depend on $q$ (the matrix is then symmetric); else LU up to 16 degrees
+    of freedom and, beyond, BiCGStab to near round-off (conjugate gradients on the
+    normal equations where it breaks down).
 - `root_finder`, `root_find_max_steps`: for the backward variational steps that build
     the starting history (at `init` and after a jump); as for
     [`diffrax_vi.MidpointVI`][].
