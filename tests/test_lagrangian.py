@@ -230,12 +230,25 @@ def test_large_affine_velocity_derivative_where_the_mass_is_diagonal_by_accident
 
 
 def test_large_degenerate_affine_lagrangian_is_not_successful():
-    # No kinetic energy in the last of 100 coordinates: the conjugate-gradient solve
-    # cannot converge, Newton's method takes over and reports failure.
+    # No kinetic energy in the last coordinate (of 20, of 100): the
+    # conjugate-gradient solve cannot converge, Newton's method takes over and
+    # reports failure.
+    # With no momentum there either, the system is consistent and a solve would
+    # succeed: the zero diagonal entry is reported as singular, also in a batch
+    # beside the inconsistent case, and at 20 coordinates.
     degenerate = lambda t, q, v, args: 0.5 * jnp.sum(v[:-1] ** 2) - jnp.sum(q**2)
-    q, p = jnp.zeros(100), jnp.ones(100)
-    v, result = dvi.velocity(degenerate, 0.0, (q, p))
-    assert result != dfx.RESULTS.successful
+    for n in (20, 100):
+        q, p = jnp.zeros(n), jnp.ones(n)
+        v, result = dvi.velocity(degenerate, 0.0, (q, p))
+        assert result != dfx.RESULTS.successful
+        consistent = p.at[-1].set(0.0)
+        _, result = dvi.velocity(degenerate, 0.0, (q, consistent))
+        assert result == dfx.RESULTS.singular
+        batch = jax.vmap(lambda p: dvi.velocity(degenerate, 0.0, (q, p))[1]._value)
+        results = batch(jnp.stack([consistent, p, 0.5 * p]))
+        assert results[0] == dfx.RESULTS.singular._value
+        assert results[1] != dfx.RESULTS.successful._value
+        assert results[2] != dfx.RESULTS.successful._value
 
 
 def test_large_affine_legendre_map_does_not_see_the_units():

@@ -13,9 +13,9 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
 from ._misc import all_finite, reads, split_state, state_dtype, tree_max_abs
 from ._nonlinear import (
-    DENSE_MAX,
     krylov_solve,
     Newton,
+    NEWTON_DENSE_MAX,
     newton_tolerance,
     scaled_norm,
     singular_threshold,
@@ -351,12 +351,12 @@ def momentum_reads_position(
     return reads(lambda _q: momentum(lagrangian, t, _q, v, args), q)
 
 
-def _diagonal_estimate(matvec, like: PyTree) -> PyTree:
+def _diagonal_estimate(matvec, like: PyTree) -> tuple[PyTree, Bool[Array, ""]]:
     """Positive weights approximating one over the diagonal of a symmetric matrix,
     from one product with the alternating vector `z = (1, -1, 1, ...)`: `z * (A z)`
     is the diagonal of a diagonal matrix exactly, and of a diagonally dominant one
     nearly. Entries the probe cannot estimate (not above `sqrt(eps)` of the largest)
-    get the smallest weight."""
+    get the smallest weight; the flag says whether there were none."""
     signs = jtu.tree_map(
         lambda x: (
             jnp.where(jnp.arange(x.size) % 2 == 0, 1, -1)
@@ -370,10 +370,14 @@ def _diagonal_estimate(matvec, like: PyTree) -> PyTree:
         jnp.stack([jnp.max(jnp.abs(d)) for d in jtu.tree_leaves(diagonal)])
     )
     floor = jnp.sqrt(jnp.finfo(largest.dtype).eps) * largest
-    return jtu.tree_map(
+    weights = jtu.tree_map(
         lambda d: 1 / jnp.where(d > floor, d, jnp.where(largest > 0, largest, 1)),
         diagonal,
     )
+    regular = jnp.all(
+        jnp.stack([jnp.all(d > floor) for d in jtu.tree_leaves(diagonal)])
+    )
+    return weights, regular
 
 
 def _affine_velocity(lagrangian, t, q, p, args) -> tuple[V, dfx.RESULTS]:
@@ -382,20 +386,22 @@ def _affine_velocity(lagrangian, t, q, p, args) -> tuple[V, dfx.RESULTS]:
     it solves the system to round-off (a diagonal mass: point masses, beads on
     wires), else one conjugate-gradient solve of Hessian-vector products to
     round-off from there, preconditioned by `D^{-1}`. `breakdown` where it does not
-    converge (an ill-conditioned or indefinite d2L/dv2)."""
+    converge (an ill-conditioned or indefinite d2L/dv2); `singular` for a diagonal
+    mass with a zero entry."""
     zeros = jtu.tree_map(jnp.zeros_like, p)
     p_rest, hvp = jax.linearize(lambda v: momentum(lagrangian, t, q, v, args), zeros)
     rhs = jtu.tree_map(lambda a, b: a - b, p, p_rest)
     eps = float(jnp.finfo(state_dtype(p)).eps)
     n = sum(jnp.size(x) for x in jtu.tree_leaves(p))
-    weights = _diagonal_estimate(hvp, p)
+    weights, regular = _diagonal_estimate(hvp, p)
     jacobi = jtu.tree_map(lambda w, b: w * b, weights, rhs)
     r = jtu.tree_map(lambda b, a: b - a, rhs, hvp(jacobi))
     # One more Jacobi sweep: where D = d2L/dv2 it leaves the value at round-off and
     # makes the derivative the implicit one, D^{-1} (db - dD v), even at a point
     # where the mass happens to be diagonal and its derivative is not.
     v = jtu.tree_map(lambda x, w, ri: x + w * ri, jacobi, weights, r)
-    solved = lax.stop_gradient(tree_max_abs(r) <= 64 * eps * tree_max_abs(rhs))
+    diagonal = lax.stop_gradient(tree_max_abs(r) <= 64 * eps * tree_max_abs(rhs))
+    solved = diagonal & regular
 
     def conjugate_gradients():
         return krylov_solve(
@@ -403,7 +409,7 @@ def _affine_velocity(lagrangian, t, q, p, args) -> tuple[V, dfx.RESULTS]:
             rhs,
             64 * eps,
             frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag}),
-            min(n, _AFFINE_MAX_STEPS),
+            min(n + 1, _AFFINE_MAX_STEPS),
             preconditioner=weights,
             guess=v,
         )
@@ -413,15 +419,19 @@ def _affine_velocity(lagrangian, t, q, p, args) -> tuple[V, dfx.RESULTS]:
         conjugate_gradients,
         lambda: (v, lx.RESULTS.successful),
     )
-    return v, dfx.RESULTS.where(
+    result = dfx.RESULTS.where(
         linear_result == lx.RESULTS.successful,
         dfx.RESULTS.successful,
         dfx.RESULTS.breakdown,
     )
+    # A diagonal mass with an entry at zero: CG would solve a consistent system
+    # (zero momentum there) and hide it.
+    return v, dfx.RESULTS.where(diagonal & ~regular, dfx.RESULTS.singular, result)
 
 
 # Conjugate-gradient iterations of the matrix-free inverse of an affine Legendre map
-# before Newton's method takes over.
+# before Newton's method takes over (at most n + 1 for n coordinates: exact in n
+# steps, and lineax's test on the last update takes one more).
 _AFFINE_MAX_STEPS = 100
 
 
@@ -443,15 +453,16 @@ def velocity(
     (t, q, v) = p$ at the state $y = (q, p)$.
 
     A division by the mass for an [`diffrax_vi.AbstractSeparableLagrangian`][]; one
-    linear solve with $\partial^2 L / \partial v^2$ for an
-    [`diffrax_vi.AbstractQuadraticLagrangian`][] of at most 64 degrees of freedom,
-    or for any Lagrangian whose traced Hessian–vector products do not read $v$
-    (quadratic in $v$, whatever its class) beyond: a division by the diagonal of
-    $\partial^2 L / \partial v^2$ where that solves it to round-off (a diagonal
-    mass), else a conjugate-gradient solve to round-off; and damped Newton
-    iterations ([`diffrax_vi.Newton`][], dense or matrix-free by size) otherwise.
-    Where it factorises $\partial^2 L / \partial v^2$ (or the mass) it checks that
-    it is invertible to working precision.
+    dense linear solve with $\partial^2 L / \partial v^2$ for an
+    [`diffrax_vi.AbstractQuadraticLagrangian`][] of at most 16 degrees of freedom;
+    beyond, for any Lagrangian whose traced Hessian–vector products do not read $v$
+    (quadratic in $v$, whatever its class), one matrix-free solve: a division by
+    the diagonal of $\partial^2 L / \partial v^2$ where that solves it to round-off
+    (a diagonal mass; `RESULTS.singular` if an entry is zero), else a
+    conjugate-gradient solve to round-off; and damped Newton iterations
+    ([`diffrax_vi.Newton`][], dense or matrix-free by size) otherwise, or where the
+    matrix-free solve fails. Where it factorises $\partial^2 L / \partial v^2$ (or
+    the mass) it checks that it is invertible to working precision.
 
     **Arguments:**
 
@@ -484,7 +495,7 @@ def velocity(
     n = sum(jnp.size(x) for x in jtu.tree_leaves(p))
     dtype = state_dtype(p)
     zeros = jtu.tree_map(jnp.zeros_like, p)
-    if isinstance(lagrangian, AbstractQuadraticLagrangian) and n <= DENSE_MAX:
+    if isinstance(lagrangian, AbstractQuadraticLagrangian) and n <= NEWTON_DENSE_MAX:
         # `dL/dv` is affine in `v`: one solve with `M = d2L/dv2` from v = 0.
         r0, linear = jax.linearize(lambda v: residual(v)[0], zeros)
         operator = lx.FunctionLinearOperator(
@@ -531,15 +542,16 @@ def velocity(
             )
 
         guess = zeros if v_guess is None else v_guess
-        if n > DENSE_MAX and quadratic_in_velocity(lagrangian, t, q, args):
+        if n > NEWTON_DENSE_MAX and quadratic_in_velocity(lagrangian, t, q, args):
             # One solve (Newton's first iterate, to round-off) without its two
             # evaluations of the residual; Newton from there where it fails.
             v, result = _affine_velocity(lagrangian, t, q, p, args)
-            v, result = lax.cond(
-                unvmap_any(result != dfx.RESULTS.successful),
-                lambda: newton(guess),
-                lambda: (v, result),
+            failed = result == dfx.RESULTS.breakdown
+            v_newton, result_newton = lax.cond(
+                unvmap_any(failed), lambda: newton(guess), lambda: (v, result)
             )
+            v = jtu.tree_map(lambda a, b: jnp.where(failed, b, a), v, v_newton)
+            result = dfx.RESULTS.where(failed, result_newton, result)
         else:
             v, result = newton(guess)
     return v, result_or_nonfinite(v, p, result)
