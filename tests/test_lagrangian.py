@@ -230,14 +230,13 @@ def test_large_affine_velocity_derivative_where_the_mass_is_diagonal_by_accident
 
 
 def test_large_degenerate_affine_lagrangian_is_not_successful():
-    # No kinetic energy in the last coordinate (of 20, of 100): the
-    # conjugate-gradient solve cannot converge, Newton's method takes over and
-    # reports failure.
-    # With no momentum there either, the system is consistent and a solve would
-    # succeed: the zero diagonal entry is reported as singular, also in a batch
-    # beside the inconsistent case, and at 20 coordinates.
+    # No kinetic energy in the last coordinate (of 4, 20, 100): the Jacobi step
+    # and (beyond 16) the conjugate-gradient solve cannot converge, Newton's method
+    # takes over and reports failure. With no momentum there either, the system is
+    # consistent and a solve would succeed: the zero diagonal entry is reported as
+    # singular, also in a batch beside the inconsistent case.
     degenerate = lambda t, q, v, args: 0.5 * jnp.sum(v[:-1] ** 2) - jnp.sum(q**2)
-    for n in (20, 100):
+    for n in (4, 20, 100):
         q, p = jnp.zeros(n), jnp.ones(n)
         v, result = dvi.velocity(degenerate, 0.0, (q, p))
         assert result != dfx.RESULTS.successful

@@ -380,14 +380,15 @@ def _diagonal_estimate(matvec, like: PyTree) -> tuple[PyTree, Bool[Array, ""]]:
     return weights, regular
 
 
-def _affine_velocity(lagrangian, t, q, p, args) -> tuple[V, dfx.RESULTS]:
+def _affine_velocity(lagrangian, t, q, p, args, krylov: bool) -> tuple[V, dfx.RESULTS]:
     """The velocity of a Lagrangian whose momentum is affine in `v`, matrix-free: the
     Jacobi step `D^{-1} b` from an estimate `D` of the diagonal of `d2L/dv2` where
     it solves the system to round-off (a diagonal mass: point masses, beads on
-    wires), else one conjugate-gradient solve of Hessian-vector products to
-    round-off from there, preconditioned by `D^{-1}`. `breakdown` where it does not
-    converge (an ill-conditioned or indefinite d2L/dv2); `singular` for a diagonal
-    mass with a zero entry."""
+    wires), else (with `krylov`) one conjugate-gradient solve of Hessian-vector
+    products to round-off from there, preconditioned by `D^{-1}`. `breakdown` where
+    it does not converge (an ill-conditioned or indefinite d2L/dv2, or a mass that
+    is not diagonal without `krylov`); `singular` for a diagonal mass with a zero
+    entry."""
     zeros = jtu.tree_map(jnp.zeros_like, p)
     p_rest, hvp = jax.linearize(lambda v: momentum(lagrangian, t, q, v, args), zeros)
     rhs = jtu.tree_map(lambda a, b: a - b, p, p_rest)
@@ -414,11 +415,16 @@ def _affine_velocity(lagrangian, t, q, p, args) -> tuple[V, dfx.RESULTS]:
             guess=v,
         )
 
-    v, linear_result = lax.cond(
-        unvmap_any(~solved),
-        conjugate_gradients,
-        lambda: (v, lx.RESULTS.successful),
-    )
+    if krylov:
+        v, linear_result = lax.cond(
+            unvmap_any(~solved),
+            conjugate_gradients,
+            lambda: (v, lx.RESULTS.successful),
+        )
+    else:
+        linear_result = lx.RESULTS.where(
+            solved, lx.RESULTS.successful, lx.RESULTS.breakdown
+        )
     result = dfx.RESULTS.where(
         linear_result == lx.RESULTS.successful,
         dfx.RESULTS.successful,
@@ -455,11 +461,12 @@ def velocity(
     A division by the mass for an [`diffrax_vi.AbstractSeparableLagrangian`][]; one
     dense linear solve with $\partial^2 L / \partial v^2$ for an
     [`diffrax_vi.AbstractQuadraticLagrangian`][] of at most 16 degrees of freedom;
-    beyond, for any Lagrangian whose traced Hessian–vector products do not read $v$
-    (quadratic in $v$, whatever its class), one matrix-free solve: a division by
-    the diagonal of $\partial^2 L / \partial v^2$ where that solves it to round-off
-    (a diagonal mass; `RESULTS.singular` if an entry is zero), else a
-    conjugate-gradient solve to round-off; and damped Newton iterations
+    for any other Lagrangian whose traced Hessian–vector products do not read $v$
+    (quadratic in $v$, whatever its class beyond 16 degrees of freedom), a division
+    by the diagonal of $\partial^2 L / \partial v^2$ where that solves it to
+    round-off (a diagonal mass; `RESULTS.singular` if an entry is zero), else beyond
+    16 degrees of freedom a conjugate-gradient solve to round-off; and damped Newton
+    iterations
     ([`diffrax_vi.Newton`][], dense or matrix-free by size) otherwise, or where the
     matrix-free solve fails. Where it factorises $\partial^2 L / \partial v^2$ (or
     the mass) it checks that it is invertible to working precision.
@@ -542,10 +549,13 @@ def velocity(
             )
 
         guess = zeros if v_guess is None else v_guess
-        if n > NEWTON_DENSE_MAX and quadratic_in_velocity(lagrangian, t, q, args):
+        if quadratic_in_velocity(lagrangian, t, q, args):
             # One solve (Newton's first iterate, to round-off) without its two
-            # evaluations of the residual; Newton from there where it fails.
-            v, result = _affine_velocity(lagrangian, t, q, p, args)
+            # evaluations of the residual; Newton from there where it fails. Up to
+            # 16 degrees of freedom a mass that is not diagonal goes to Newton's
+            # dense LU, whose pivots tell a singular one.
+            krylov = n > NEWTON_DENSE_MAX
+            v, result = _affine_velocity(lagrangian, t, q, p, args, krylov)
             failed = result == dfx.RESULTS.breakdown
             v_newton, result_newton = lax.cond(
                 unvmap_any(failed), lambda: newton(guess), lambda: (v, result)
