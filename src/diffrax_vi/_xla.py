@@ -23,11 +23,14 @@ import re
 from ._private_api import backends_are_initialized
 
 
-# Bytes a loop body may access and still be compiled as one function. 64 KiB covers
-# every loop on tens of degrees of freedom, but not a chain of 1024 or 4096, whose
-# separately dispatched kernels are each large enough to pay for their dispatch (a
-# threshold of 1 GB made Tsit5 on the 4096-mass chain 1.3x slower).
-SMALL_LOOP_BYTES = 1 << 16
+# Bytes a loop body may access and still be compiled as one function. 4 MiB covers
+# the Newton and Krylov loops of the implicit solvers up to about a thousand degrees
+# of freedom, where 64 KiB stopped at about 60 (MidpointVI on the generic 64-mass
+# chain 18.6 -> 6.5 us per step, LinearizedVI 14.0 -> 9.0, both 1.4x faster at
+# 1024; `benchmarks/scaling.py`), and leaves the loops of 4096-mass chains, whose
+# kernels are large enough to pay for their dispatch, as they were (a threshold of
+# 1 GB made Tsit5 on the 4096-mass chain 1.3x slower).
+SMALL_LOOP_BYTES = 1 << 22
 
 _OPTION = "xla_cpu_small_while_loop_byte_threshold"
 
@@ -41,7 +44,9 @@ def compile_small_loops_whole(threshold_bytes: int = SMALL_LOOP_BYTES) -> bool:
     """Let XLA compile every CPU loop whose body accesses fewer than
     `threshold_bytes` bytes as one function: on systems of a few degrees of freedom,
     2 to 25 times faster steps (Kepler, per step: a fourth-order composition of
-    Störmer–Verlet 0.36 -> 0.11 us, `MidpointVI` 1.12 -> 0.21 us). No effect on GPUs.
+    Störmer–Verlet 0.36 -> 0.11 us, `MidpointVI` 1.12 -> 0.21 us), and 1.3 to 3 times
+    faster implicit steps on 64 to 1024 degrees of freedom, whose Newton and Krylov
+    loops cross XLA's threshold. No effect on GPUs.
 
     Call it before JAX runs anything (the first array created or computation run
     starts the backend, which reads the setting once); `import jax` and
