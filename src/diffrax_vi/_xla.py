@@ -26,7 +26,7 @@ from ._private_api import backends_are_initialized
 # Bytes a loop body may access and still be compiled as one function. 4 MiB covers
 # the Newton and Krylov loops of the implicit solvers up to about a thousand degrees
 # of freedom, where 64 KiB stopped at about 60 (MidpointVI on the generic 64-mass
-# chain 18.6 -> 6.5 us per step, LinearizedVI 14.0 -> 9.0, both 1.4x faster at
+# chain 18.6 -> 6.5 us per step, LinearizedVI 14.0 -> 9.0; 1.3-1.4x faster at
 # 1024; `benchmarks/scaling.py`), and leaves the loops of 4096-mass chains, whose
 # kernels are large enough to pay for their dispatch, as they were (a threshold of
 # 1 GB made Tsit5 on the 4096-mass chain 1.3x slower).
