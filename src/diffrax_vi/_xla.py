@@ -44,7 +44,7 @@ def compile_small_loops_whole(threshold_bytes: int = SMALL_LOOP_BYTES) -> bool:
     """Let XLA compile every CPU loop whose body accesses fewer than
     `threshold_bytes` bytes as one function: on systems of a few degrees of freedom,
     2 to 25 times faster steps (Kepler, per step: a fourth-order composition of
-    Störmer–Verlet 0.36 -> 0.11 us, `MidpointVI` 1.12 -> 0.21 us), and 1.3 to 3 times
+    Störmer–Verlet 0.36 -> 0.11 us, `MidpointVI` 1.12 -> 0.21 us), and 1.3 to 3.3 times
     faster implicit steps on 64 to 1024 degrees of freedom, whose Newton and Krylov
     loops cross XLA's threshold. No effect on GPUs.
 
