@@ -2,6 +2,7 @@ from collections.abc import Callable
 
 import diffrax as dfx
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 from jaxtyping import ArrayLike, PyTree
@@ -37,6 +38,35 @@ VF_ERRORS = (
 )
 
 
+SINGULAR_MASS = (
+    "The mass of this separable Lagrangian is singular: an entry is zero (or below "
+    "eps times the largest), or not finite. Every degree of freedom needs a positive "
+    "mass."
+)
+
+
+def mass_settles_velocity(lagrangian: AbstractLagrangian) -> bool:
+    """Whether the Legendre map is settled for every state of a solve by one check
+    of the Lagrangian, made here: a separable Lagrangian whose mass is concrete and
+    regular.
+
+    Its velocity $M^{-1}p$ fails only for a singular mass, fixed for the solve. A
+    check in every vector field would put a host callback in XLA's time-stepping
+    loop, which then cannot be compiled as one function: Runge–Kutta steps on small
+    systems several times slower (`benchmarks/step_cost.py`). A mass traced where
+    the term is built (one being fitted inside `jax.jit`), or a singular one, keeps
+    the check in every vector field, which reports it.
+    """
+    if not isinstance(lagrangian, AbstractSeparableLagrangian):
+        return False
+    mass = lagrangian.mass
+    if any(isinstance(m, jax.core.Tracer) for m in jtu.tree_leaves(mass)):
+        return False
+    with jax.ensure_compile_time_eval():
+        mass = jtu.tree_map(jnp.asarray, mass)
+        return bool(mass_regular(mass, mass))
+
+
 class LagrangianTerm(dfx.AbstractTerm):
     r"""A Lagrangian as a diffrax term on the phase-space state $y = (q, p)$.
 
@@ -69,12 +99,17 @@ class LagrangianTerm(dfx.AbstractTerm):
         be inverted at a finite state, `vf` raises an `EquinoxRuntimeError` that names
         the cause (a degenerate Lagrangian; a momentum Newton's method cannot invert;
         NaN from the Lagrangian) rather than return a NaN that a fixed-step
-        Runge–Kutta solve would report as a success.
+        Runge–Kutta solve would report as a success. A separable Lagrangian's map is
+        settled when the term is built (its mass is checked then), so its vector
+        field carries no such check and runs at the speed of Hamilton's equations
+        written by hand; a mass replaced in the term afterwards is not checked again.
     """
 
     lagrangian: AbstractLagrangian
     force: Callable[..., PyTree] | None
     constraint: Callable[..., ArrayLike] | None
+    # Whether the vector field can skip its per-step check; see `mass_settles_velocity`.
+    mass_checked: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -100,6 +135,9 @@ class LagrangianTerm(dfx.AbstractTerm):
                 raise ValueError(f"`{name}` must be callable or None; got {fn!r}.")
         self.force = force
         self.constraint = constraint
+        self.mass_checked = constraint is None and mass_settles_velocity(
+            self.lagrangian
+        )
 
     def hamilton(
         self,
@@ -130,6 +168,8 @@ class LagrangianTerm(dfx.AbstractTerm):
 
     def vf(self, t: RealScalarLike, y: PyTree, args: Args) -> PyTree:
         f, result = self.hamilton(t, y, args)
+        if self.mass_checked:
+            return f
         # A vector field cannot return a RESULTS: each cause raises its own message.
         index = jnp.where(
             result == dfx.RESULTS.singular,
@@ -212,13 +252,7 @@ def separable_terms(
     # Checked once, here, rather than at every step: a zero mass would give a NaN
     # position that the momentum, which every step checks, need not see.
     mass = jtu.tree_map(jnp.asarray, lagrangian.mass)
-    mass = eqx.error_if(
-        mass,
-        ~mass_regular(mass, mass),
-        "The mass of this separable Lagrangian is singular: an entry is zero (or "
-        "below eps times the largest), or not finite. Every degree of freedom needs "
-        "a positive mass.",
-    )
+    mass = eqx.error_if(mass, ~mass_regular(mass, mass), SINGULAR_MASS)
     return dfx.ODETerm(_SeparableVelocity(mass)), dfx.ODETerm(
         _SeparableForce(lagrangian, force)
     )
