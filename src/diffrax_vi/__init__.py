@@ -50,6 +50,12 @@ from ._solver import (
     VPRK as VPRK,
     VPRKTableau as VPRKTableau,
 )
+from ._space import (
+    AbstractSpace as AbstractSpace,
+    Euclidean as Euclidean,
+    SO2 as SO2,
+    SO3 as SO3,
+)
 from ._term import (
     LagrangianTerm as LagrangianTerm,
     separable_terms as separable_terms,

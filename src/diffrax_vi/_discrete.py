@@ -28,8 +28,8 @@ import optimistix as optx
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
 from ._force import applied_force, power
 from ._lagrangian import AbstractLagrangian, lagrangian_value, momentum_offset
-from ._misc import tree_axpy
 from ._nonlinear import solve
+from ._space import is_euclidean, pull, retract, tangent, transport
 
 
 class AbstractDiscreteLagrangian(eqx.Module):
@@ -56,10 +56,18 @@ class AbstractDiscreteLagrangian(eqx.Module):
         q0: Q,
         v: V,
         args: Args,
+        lagrangian: AbstractLagrangian,
     ) -> tuple[P, P]:
         r"""The discrete forces $(f^-, f^+)$ of the applied force $F$ on the step:
         the virtual work $\int F\cdot\delta q\,dt$ by the quadrature the rule uses
-        for $L$ (Marsden & West (2001), §3.2)."""
+        for $L$ (Marsden & West (2001), §3.2), at the positions of `lagrangian`'s
+        configuration space."""
+
+
+def _move(lagrangian: AbstractLagrangian, q0: Q, a, v: V) -> Q:
+    r"""$q_0 \oplus a v$ in the Lagrangian's configuration space ($q_0 + a v$ in a
+    vector space)."""
+    return retract(lagrangian.space, q0, jtu.tree_map(lambda x: a * x, v))
 
 
 class MidpointRule(AbstractDiscreteLagrangian):
@@ -68,11 +76,11 @@ class MidpointRule(AbstractDiscreteLagrangian):
     §2.6)."""
 
     def average(self, lagrangian, t0, h, q0, v, args):
-        q_mid = tree_axpy(0.5 * h, v, q0)
+        q_mid = _move(lagrangian, q0, 0.5 * h, v)
         return lagrangian_value(lagrangian, t0 + 0.5 * h, q_mid, v, args)
 
-    def forces(self, force, t0, h, q0, v, args):
-        q_mid = tree_axpy(0.5 * h, v, q0)
+    def forces(self, force, t0, h, q0, v, args, lagrangian):
+        q_mid = _move(lagrangian, q0, 0.5 * h, v)
         f = applied_force(force, t0 + 0.5 * h, q_mid, v, args)
         half = jtu.tree_map(lambda x: 0.5 * h * x, f)
         return half, half
@@ -83,14 +91,14 @@ class TrapezoidalRule(AbstractDiscreteLagrangian):
     $v = (q_1 - q_0)/h$."""
 
     def average(self, lagrangian, t0, h, q0, v, args):
-        q1 = tree_axpy(h, v, q0)
+        q1 = _move(lagrangian, q0, h, v)
         return 0.5 * (
             lagrangian_value(lagrangian, t0, q0, v, args)
             + lagrangian_value(lagrangian, t0 + h, q1, v, args)
         )
 
-    def forces(self, force, t0, h, q0, v, args):
-        q1 = tree_axpy(h, v, q0)
+    def forces(self, force, t0, h, q0, v, args, lagrangian):
+        q1 = _move(lagrangian, q0, h, v)
         f0 = applied_force(force, t0, q0, v, args)
         f1 = applied_force(force, t0 + h, q1, v, args)
         half = lambda f: jtu.tree_map(lambda x: 0.5 * h * x, f)
@@ -157,8 +165,22 @@ def del_momenta(
 
 
 def average_grads(rule, lagrangian, t0, h, q0, v, args) -> tuple[P, P]:
-    r"""$(\partial_{q_0}\Lambda, \partial_v\Lambda)$."""
-    return jax.grad(rule.average, argnums=(3, 4))(lagrangian, t0, h, q0, v, args)
+    r"""$(\partial_{q_0}\Lambda, \partial_v\Lambda)$, the first left-trivialised
+    on a group (along $q_0 \oplus \eta$, with $v$ held)."""
+    space = lagrangian.space
+    if is_euclidean(space):
+        return jax.grad(rule.average, argnums=(3, 4))(lagrangian, t0, h, q0, v, args)
+    return jax.grad(
+        lambda eta, v: rule.average(
+            lagrangian, t0, h, retract(space, q0, eta), v, args
+        ),
+        argnums=(0, 1),
+    )(tangent(space, q0), v)
+
+
+def _kicked(p0, h, dl_dq, f_minus) -> P:
+    r"""$p_0 + h\,\partial_{q_0}\Lambda + f^-$."""
+    return jtu.tree_map(lambda p, a, f: p + h * a + f, p0, dl_dq, f_minus)
 
 
 def _zero_forces(q0: Q) -> tuple[P, P]:
@@ -179,9 +201,18 @@ def step_residual(
     $\partial^2 L/\partial v^2$ as $h \to 0$."""
     dq, dv = average_grads(rule, lagrangian, t0, h, q0, v, args)
     f_minus, _ = (
-        _zero_forces(q0) if force is None else rule.forces(force, t0, h, q0, v, args)
+        _zero_forces(p0)
+        if force is None
+        else rule.forces(force, t0, h, q0, v, args, lagrangian)
     )
-    r = jtu.tree_map(lambda p, a, b, f: b - h * a - f - p, p0, dq, dv, f_minus)
+    space = lagrangian.space
+    if is_euclidean(space):
+        r = jtu.tree_map(lambda p, a, b, f: b - h * a - f - p, p0, dq, dv, f_minus)
+    else:
+        # On a group the momentum balanced at q0 is pulled through the retraction.
+        step = jtu.tree_map(lambda x: h * x, v)
+        pulled = pull(space, step, _kicked(p0, h, dq, f_minus))
+        r = jtu.tree_map(lambda b, k: b - k, dv, pulled)
     s = jtu.tree_map(
         lambda p, a, b, c, f: jnp.abs(p) + jnp.abs(h * a) + jnp.abs(b) + c + jnp.abs(f),
         p0,
@@ -193,23 +224,39 @@ def step_residual(
     return r, s
 
 
-def step_increments(rule, lagrangian, t0, h, q0, v, args, force=None) -> tuple[Q, P]:
-    r"""The increments $(q_1 - q_0, p_1 - p_0) = (h v, h\,\partial_{q_0}\Lambda + f^-
-    + f^+)$ of the step with velocity $v$, where $p_1 = D_2 L_d(q_0, q_1) + f^+$."""
+def step_increments(
+    rule, lagrangian, t0, h, q0, p0, v, args, force=None
+) -> tuple[Q, P]:
+    r"""The increments $(h v, p_1 - p_0)$ of the step with velocity $v$ (the
+    position moves by $q_1 = q_0 \oplus h v$), where $p_1 = D_2 L_d(q_0, q_1) + f^+$:
+    $p_1 - p_0 = h\,\partial_{q_0}\Lambda + f^- + f^+$ in a vector space, and on a
+    group $p_1 = \mathrm{Ad}^*_{\tau(hv)}(p_0 + h\,\partial_{q_0}\Lambda + f^-)
+    + f^+$."""
     dl_dq, _ = average_grads(rule, lagrangian, t0, h, q0, v, args)
+    step = jtu.tree_map(lambda x: h * x, v)
+    space = lagrangian.space
+    if not is_euclidean(space):
+        f_minus, f_plus = (
+            _zero_forces(p0)
+            if force is None
+            else rule.forces(force, t0, h, q0, v, args, lagrangian)
+        )
+        p1 = transport(space, step, _kicked(p0, h, dl_dq, f_minus))
+        dp = jtu.tree_map(lambda a, f, p: a + f - p, p1, f_plus, p0)
+        return step, dp
     dp = jtu.tree_map(lambda x: h * x, dl_dq)
     if force is not None:
-        f_minus, f_plus = rule.forces(force, t0, h, q0, v, args)
+        f_minus, f_plus = rule.forces(force, t0, h, q0, v, args, lagrangian)
         dp = jtu.tree_map(lambda a, b, c: a + b + c, dp, f_minus, f_plus)
-    return jtu.tree_map(lambda x: h * x, v), dp
+    return step, dp
 
 
-def step_work(rule, force, t0, h, q0, v, args) -> Scalar:
+def step_work(rule, lagrangian, force, t0, h, q0, v, args) -> Scalar:
     r"""The work $(f^- + f^+)\cdot v$ of the discrete forces over the step with
     velocity $v = (q_1 - q_0)/h$: the term that the discrete forces add to the
     energy balance, by the rule's own quadrature (for the midpoint rule
     $h\,F_{1/2}\cdot v$, for the trapezoidal rule $\tfrac h2 (F_0 + F_1)\cdot v$)."""
-    f_minus, f_plus = rule.forces(force, t0, h, q0, v, args)
+    f_minus, f_plus = rule.forces(force, t0, h, q0, v, args, lagrangian)
     return power(jtu.tree_map(lambda a, b: a + b, f_minus, f_plus), v)
 
 
@@ -241,5 +288,5 @@ def discrete_hamiltonian_map(
         max_steps,
     )
     v = solved.value
-    dq, dp = step_increments(rule, lagrangian, t0, h, q0, v, args)
+    dq, dp = step_increments(rule, lagrangian, t0, h, q0, p0, v, args)
     return dq, dp, v, solved.result

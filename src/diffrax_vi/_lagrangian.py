@@ -1,5 +1,6 @@
 import abc
 from collections.abc import Callable
+from typing import ClassVar
 
 import diffrax as dfx
 import equinox as eqx
@@ -22,6 +23,7 @@ from ._nonlinear import (
     solve,
 )
 from ._private_api import unvmap_any
+from ._space import AbstractSpace, Euclidean, is_euclidean, left_gradient, tangent
 
 
 class AbstractLagrangian(eqx.Module):
@@ -35,7 +37,14 @@ class AbstractLagrangian(eqx.Module):
     [`diffrax_vi.AbstractQuadraticLagrangian`][] instead, and one of the form
     $\tfrac12 v^\top M v - V(t, q)$ with constant diagonal $M$
     [`diffrax_vi.AbstractSeparableLagrangian`][]: the solvers then take cheaper paths.
+
+    Its configuration space is the class variable `space`,
+    [`diffrax_vi.Euclidean`][] unless a subclass sets another (`space = SO3()` for a
+    rigid body's attitude): then `v` and the momentum have the structure of the
+    space's velocities ([`diffrax_vi.SO3`][]: the body angular velocity).
     """
+
+    space: ClassVar[PyTree[AbstractSpace]] = Euclidean()
 
     @abc.abstractmethod
     def __call__(self, t: RealScalarLike, q: Q, v: V, args: Args) -> Scalar:
@@ -56,6 +65,10 @@ class Lagrangian(AbstractLagrangian):
     """Wraps a plain callable `fn(t, q, v, args) -> scalar` as a Lagrangian.
 
     Nothing is assumed of `fn`: the inverse Legendre map is found by Newton's method.
+    `space` is its configuration space ([`diffrax_vi.Euclidean`][] by default;
+    [`diffrax_vi.SO3`][], [`diffrax_vi.SO2`][], or a PyTree of spaces for a product,
+    `(Euclidean(), SO3())` for `q = (x, R)`): on a group `fn(t, R, Omega, args)`
+    takes the body velocity.
 
     !!! example
 
@@ -65,6 +78,13 @@ class Lagrangian(AbstractLagrangian):
     """
 
     fn: Callable[..., ArrayLike]
+    space: PyTree[AbstractSpace]  # pyright: ignore
+
+    def __init__(
+        self, fn: Callable[..., ArrayLike], space: PyTree[AbstractSpace] = Euclidean()
+    ):
+        self.fn = fn
+        self.space = space
 
     def __call__(self, t: RealScalarLike, q: Q, v: V, args: Args) -> Array:
         # Not annotated as a scalar: callers check that with an error that says how
@@ -171,6 +191,13 @@ class TangentLift(AbstractLagrangian):
 
     def __init__(self, lagrangian: Callable[..., ArrayLike]):
         self.lagrangian = as_lagrangian(lagrangian)
+        if not is_euclidean(self.lagrangian.space):
+            raise ValueError(
+                "TangentLift(L) doubles the configuration to (q, u) with u a "
+                "displacement added to q, which needs a vector space; this Lagrangian "
+                "lives on a group. Differentiate the solve instead (jax.jvp through "
+                "diffeqsolve gives the same tangent flow)."
+            )
 
     def __call__(self, t: RealScalarLike, q: Q, v: V, args: Args) -> Scalar:
         if not (isinstance(q, tuple) and len(q) == 2):
@@ -273,11 +300,13 @@ def momentum(
 def generalised_force(
     lagrangian: AbstractLagrangian, t: RealScalarLike, q: Q, v: V, args: Args
 ) -> P:
-    r"""$\partial L / \partial q$."""
+    r"""$\partial L / \partial q$, left-trivialised on a group."""
     if isinstance(lagrangian, AbstractSeparableLagrangian):
         grad_v = jax.grad(lambda _q: lagrangian.potential(t, _q, args))(q)
         return jtu.tree_map(jnp.negative, grad_v)
-    return jax.grad(lambda _q: lagrangian_value(lagrangian, t, _q, v, args))(q)
+    return left_gradient(
+        lagrangian.space, lambda _q: lagrangian_value(lagrangian, t, _q, v, args), q
+    )
 
 
 def mass_regular(mass: PyTree[ArrayLike], like: PyTree) -> Bool[Array, ""]:
@@ -298,8 +327,8 @@ def momentum_offset(lagrangian: AbstractLagrangian, t, q: Q, args: Args) -> P:
     for a separable Lagrangian. A residual's scale includes it: the momentum can
     vanish while its terms do not, and then only they say what round-off is."""
     if isinstance(lagrangian, AbstractSeparableLagrangian):
-        return jtu.tree_map(jnp.zeros_like, q)
-    zeros = jtu.tree_map(jnp.zeros_like, q)
+        return tangent(lagrangian.space, q)
+    zeros = tangent(lagrangian.space, q)
     return jtu.tree_map(jnp.abs, momentum(lagrangian, t, q, zeros, args))
 
 
@@ -333,7 +362,7 @@ def quadratic_in_velocity(
     does not show, e.g. through `jnp.linalg.norm(v) ** 2`, is not recognised), and
     decided at trace time. Then $\partial L/\partial v$ is affine in $v$ and one
     linear solve inverts it exactly."""
-    zeros = jtu.tree_map(jnp.zeros_like, q)
+    zeros = tangent(lagrangian.space, q)
 
     def hvp(v, w):
         return jax.jvp(lambda _v: momentum(lagrangian, t, q, _v, args), (v,), (w,))[1]
@@ -489,7 +518,7 @@ def velocity(
     gave a NaN or inf velocity (NaN in the Lagrangian, its parameters or `args`).
     """
     lagrangian = as_lagrangian(lagrangian)
-    q, p = split_state(y, "y")
+    q, p = split_state(y, "y", lagrangian.space)
     if isinstance(lagrangian, AbstractSeparableLagrangian):
         mass = broadcast_mass(lagrangian.mass, p)
         v = jtu.tree_map(lambda m, pi: pi / m, mass, p)
@@ -598,7 +627,7 @@ def energy(
     The energy, a scalar; NaN if the Legendre map cannot be inverted there.
     """
     lagrangian = as_lagrangian(lagrangian)
-    q, p = split_state(y, "y")
+    q, p = split_state(y, "y", lagrangian.space)
     v, result = velocity(lagrangian, t, y, args)
     pv = sum(jnp.sum(pi * vi) for pi, vi in zip(jtu.tree_leaves(p), jtu.tree_leaves(v)))
     value = pv - lagrangian_value(lagrangian, t, q, v, args)

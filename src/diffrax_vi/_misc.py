@@ -6,6 +6,7 @@ import numpy as np
 from jaxtyping import Array, Bool, PyTree
 
 from ._custom_types import P, Q
+from ._space import is_euclidean, tangent
 
 
 def state_dtype(tree: PyTree) -> np.dtype:
@@ -42,8 +43,22 @@ def sum_is_finite(tree: PyTree) -> Bool[Array, ""]:
     return jnp.isfinite(sum(jnp.sum(x) for x in jtu.tree_leaves(tree)))
 
 
-def check_state(q: Q, p: P, name: str = "y0") -> None:
-    """Trace-time check that positions and momenta have matching structure, shapes."""
+def check_state(q: Q, p: P, name: str = "y0", space: PyTree = None) -> None:
+    """Trace-time check that positions and momenta have matching structure, shapes
+    (on a group, that the momenta have the structure of the space's velocities)."""
+    if space is not None and not is_euclidean(space):
+        like = jax.eval_shape(lambda: tangent(space, q))
+        shapes = lambda tree: jtu.tree_map(jnp.shape, tree)
+        if jtu.tree_structure(like) != jtu.tree_structure(p) or shapes(like) != shapes(
+            p
+        ):
+            raise ValueError(
+                f"`{name} = (q, p)` on this configuration space needs momenta shaped "
+                f"like its velocities, {shapes(like)}; got {shapes(p)}. For SO3, "
+                "`q` is a (3, 3) rotation matrix and `p` the body angular momentum "
+                "of shape (3,)."
+            )
+        return
     q_struct = jtu.tree_structure(q)
     p_struct = jtu.tree_structure(p)
     if q_struct != p_struct:
@@ -61,7 +76,7 @@ def check_state(q: Q, p: P, name: str = "y0") -> None:
             )
 
 
-def split_state(y: PyTree, name: str = "y0") -> tuple[Q, P]:
+def split_state(y: PyTree, name: str = "y0", space: PyTree = None) -> tuple[Q, P]:
     """Unpack `y = (q, p)` with a trace-time error that says how to build it."""
     if isinstance(y, list) and len(y) == 2:
         raise ValueError(
@@ -76,7 +91,7 @@ def split_state(y: PyTree, name: str = "y0") -> tuple[Q, P]:
             "`(q0, diffrax_vi.momentum(lagrangian, t0, q0, v0, args))`."
         )
     q, p = y
-    check_state(q, p, name)
+    check_state(q, p, name, space)
     return q, p
 
 

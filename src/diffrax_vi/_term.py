@@ -20,6 +20,7 @@ from ._lagrangian import (
     velocity,
 )
 from ._misc import all_finite, split_state
+from ._space import coadjoint, is_euclidean, velocity as space_velocity
 
 
 VF_ERRORS = (
@@ -135,6 +136,19 @@ class LagrangianTerm(dfx.AbstractTerm):
                 raise ValueError(f"`{name}` must be callable or None; got {fn!r}.")
         self.force = force
         self.constraint = constraint
+        if not is_euclidean(self.lagrangian.space):
+            if isinstance(self.lagrangian, AbstractSeparableLagrangian):
+                raise ValueError(
+                    "AbstractSeparableLagrangian takes dV/dq as a gradient in a "
+                    "vector space, and this one's `space` is a group. Write it as "
+                    "`diffrax_vi.Lagrangian(fn, space=...)`."
+                )
+            if constraint is not None:
+                raise ValueError(
+                    "Holonomic constraints are supported in a vector space only; "
+                    "this Lagrangian lives on a group. A rigid body needs none: "
+                    "its attitude on SO3 is exact."
+                )
         self.mass_checked = constraint is None and mass_settles_velocity(
             self.lagrangian
         )
@@ -151,10 +165,16 @@ class LagrangianTerm(dfx.AbstractTerm):
         - G^\top\lambda)$ at $y = (q, p)$, and whether the Legendre map could be
         inverted there (from the guess `v_guess` for a general Lagrangian). $F$ is
         the applied force, $-G^\top\lambda$ the constraint force of the
-        index-reduced equations (zero without a constraint)."""
-        q, p = split_state(y, "y")
+        index-reduced equations (zero without a constraint). On a group the first
+        entry is the velocity $\xi$ (`vf` turns it into $\dot q$) and $\dot p$ the
+        Euler–Poincaré equation $\partial^L_q L + \mathrm{ad}^*_\xi p + F$."""
+        space = self.lagrangian.space
+        q, p = split_state(y, "y", space)
         v, result = velocity(self.lagrangian, t, y, args, v_guess=v_guess)
         dp = generalised_force(self.lagrangian, t, q, v, args)
+        if not is_euclidean(space):
+            # The Euler-Poincare equations: the group's own term ad*_v p.
+            dp = jtu.tree_map(lambda a, b: a + b, dp, coadjoint(space, v, p))
         if self.force is not None:
             force = applied_force(self.force, t, q, v, args)
             dp = jtu.tree_map(lambda a, b: a + b, dp, force)
@@ -167,7 +187,8 @@ class LagrangianTerm(dfx.AbstractTerm):
         return (v, dp), result
 
     def vf(self, t: RealScalarLike, y: PyTree, args: Args) -> PyTree:
-        f, result = self.hamilton(t, y, args)
+        (v, dp), result = self.hamilton(t, y, args)
+        f = (space_velocity(self.lagrangian.space, y[0], v), dp)
         if self.mass_checked:
             return f
         # A vector field cannot return a RESULTS: each cause raises its own message.
@@ -293,6 +314,13 @@ def terms_for(
         lagrangian = term.lagrangian
     if isinstance(structure, tuple) and len(structure) == 2:
         lagrangian = as_lagrangian(lagrangian)
+        if not is_euclidean(lagrangian.space):
+            raise ValueError(
+                f"{type(solver).__name__} integrates a partitioned system in a vector "
+                "space (dq/dt = M^-1 p), and this Lagrangian lives on a group. Use "
+                "MidpointVI or TrapezoidalVI (or a Composition of them) on the "
+                "LagrangianTerm."
+            )
         if term is not None and term.constraint is not None:
             raise ValueError(
                 f"{type(solver).__name__} integrates a partitioned system, which "

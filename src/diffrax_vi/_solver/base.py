@@ -24,6 +24,7 @@ from .._custom_types import Args, P, Q, RealScalarLike, V
 from .._lagrangian import momentum_offset
 from .._misc import split_state, state_dtype, sum_is_finite
 from .._private_api import NoForwardingSolverMeta, WrapTerm
+from .._space import is_euclidean, retract, velocity
 from .._term import LagrangianTerm
 
 
@@ -108,6 +109,23 @@ def compensated_add(
     return y1, compensation
 
 
+def advance(
+    space: PyTree, y0: PyTree, increment: PyTree, compensation: PyTree | None
+) -> tuple[PyTree, PyTree | None]:
+    r"""`y0 = (q0, p0)` moved by the step's increments `(dq, dp)`: the position
+    through its configuration space, $q_0 \oplus dq$, and every sum compensated.
+    On a group the position is a product of group elements, not a sum, so its
+    compensation stays zero."""
+    if is_euclidean(space):
+        return compensated_add(y0, increment, compensation)
+    (q0, p0), (dq, dp) = y0, increment
+    q1 = retract(space, q0, dq)
+    if compensation is None:
+        return (q1, jtu.tree_map(lambda a, b: a + b, p0, dp)), None
+    p1, compensation_p = compensated_add(p0, dp, compensation[1])
+    return (q1, p1), (compensation[0], compensation_p)
+
+
 def unwrap_term(terms: dfx.AbstractTerm, solver: str) -> tuple[LagrangianTerm, Array]:
     """The user's `LagrangianTerm` inside diffrax's `WrapTerm`, and the time direction
     (`+1`, or `-1` when integrating backwards)."""
@@ -176,7 +194,7 @@ def step_inputs(
     solver: str,
 ) -> StepInputs:
     term, direction = unwrap_term(terms, solver)
-    q0, p0 = split_state(y0)
+    q0, p0 = split_state(y0, "y0", term.lagrangian.space)
     dtype = state_dtype(y0)
     h = jnp.asarray(step_control(terms, substep), dtype=dtype)
     t0 = jnp.asarray(direction * t0, dtype=dtype)
@@ -241,10 +259,15 @@ def hermite_dense_info(
     removes.
     """
     term, args = step.term, step.args
-    f0, _ = term.hamilton(step.t0, y0, args, v_guess=v_guess)
-    f1, _ = term.hamilton(step.t1, y1, args, v_guess=v_guess)
-    scale = lambda f: jtu.tree_map(lambda x: step.h * x, f)
-    return dict(y0=y0, y1=y1, k0=scale(f0), k1=scale(f1))
+    space = term.lagrangian.space
+
+    def scaled_field(t, y):
+        (v, dp), _ = term.hamilton(t, y, args, v_guess=v_guess)
+        return jtu.tree_map(lambda x: step.h * x, (velocity(space, y[0], v), dp))
+
+    return dict(
+        y0=y0, y1=y1, k0=scaled_field(step.t0, y0), k1=scaled_field(step.t1, y1)
+    )
 
 
 class AbstractVariationalSolver(dfx.AbstractSolver):
@@ -329,7 +352,8 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
             terms, t0, t1, y0, args, compensation, substep, type(self).__name__
         )
         out = self.method_step(step, solver_state.method, made_jump)
-        y1, compensation = compensated_add(y0, (out.dq, out.dp), compensation)
+        space = step.term.lagrangian.space
+        y1, compensation = advance(space, y0, (out.dq, out.dp), compensation)
         y1, result = step_result(out.result, y1)
         dense_info = hermite_dense_info(step, y0, y1, out.v)
         work = solver_state.work

@@ -26,6 +26,7 @@ from .._nonlinear import (
     tree_size,
 )
 from .._private_api import unvmap_any
+from .._space import is_euclidean
 from .base import (
     AbstractVariationalSolver,
     initial_compensation,
@@ -174,6 +175,14 @@ class LinearizedVI(AbstractVariationalSolver):
                 "LinearizedVI linearizes the unforced, unconstrained discrete "
                 "Euler-Lagrange equations of Hirani (2000); for a LagrangianTerm "
                 "with a force or a constraint use MidpointVI or TrapezoidalVI (or a "
+                "Composition of them)."
+            )
+        if not is_euclidean(step.term.lagrangian.space):
+            raise ValueError(
+                "LinearizedVI linearizes the discrete Euler-Lagrange equations in "
+                "the positions q_{k-1}, q_k, q_{k+1} of a vector space (Hirani "
+                "(2000), eq. (4.63)), and this Lagrangian lives on a group, whose "
+                "positions do not add. Use MidpointVI or TrapezoidalVI (or a "
                 "Composition of them)."
             )
         q, p, t, h = step.q0, step.p0, step.t0, step.h

@@ -41,7 +41,10 @@ def _force(step: StepInputs, t, q) -> PyTree:
 
 
 def _work(step: StepInputs, v) -> PyTree:
-    return step_work(_RULE, step.term.force, step.t0, step.h, step.q0, v, step.args)
+    term = step.term
+    return step_work(
+        _RULE, term.lagrangian, term.force, step.t0, step.h, step.q0, v, step.args
+    )
 
 
 def _explicit(step: StepInputs) -> bool:
@@ -79,6 +82,7 @@ def _increments(step: StepInputs, v) -> tuple[PyTree, PyTree]:
         step.t0,
         step.h,
         step.q0,
+        step.p0,
         v,
         step.args,
         step.term.force,

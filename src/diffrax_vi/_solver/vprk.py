@@ -33,6 +33,7 @@ from equinox import AbstractVar
 from jaxtyping import Array, PyTree
 
 from .._custom_types import P, Q, V
+from .._discrete import MidpointRule, step_increments, step_residual, step_work
 from .._force import applied_force, power
 from .._lagrangian import (
     AbstractSeparableLagrangian,
@@ -40,9 +41,12 @@ from .._lagrangian import (
     lagrangian_value,
     momentum_reads_position,
 )
+from .._space import is_euclidean
 from .base import StepInputs
 from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC, SYMMETRIC_POSITIVE
 
+
+_MIDPOINT = MidpointRule()
 
 # Past this many stages the construction below is not checked to round-off, and the
 # order 2s is far beyond what any floating dtype can resolve.
@@ -224,7 +228,25 @@ class AbstractVPRK(AbstractImplicitVI):
     def order(self, terms):
         return self.tableau.order
 
+    def _on_group(self, step: StepInputs) -> bool:
+        r"""Whether the Lagrangian lives on a group. There the one-stage method is the
+        Lie midpoint rule $L_d = h\,L(g_0\tau(h\xi/2), \xi)$ with $g_1 =
+        g_0\tau(h\xi)$, stepped by the discrete Euler–Poincaré equations of
+        `_discrete.py`; stages beyond one have no such form here."""
+        if is_euclidean(step.term.lagrangian.space):
+            return False
+        if self.tableau.stages != 1:
+            raise ValueError(
+                f"{type(self).__name__} has {self.tableau.stages} stages, and only "
+                "the one-stage method (MidpointVI) is defined on a group here. For "
+                "higher order on a group, compose it: "
+                "`Composition(MidpointVI(), 'kahan_li8')`."
+            )
+        return True
+
     def stage_guess(self, step: StepInputs, v: V) -> PyTree:
+        if self._on_group(step):
+            return v
         s = self.tableau.stages
         return jtu.tree_map(lambda x: jnp.broadcast_to(x, (s, *x.shape)), v)
 
@@ -261,6 +283,18 @@ class AbstractVPRK(AbstractImplicitVI):
         return dl_dq, dl_dv
 
     def stage_work(self, step: StepInputs, stage_v: PyTree) -> Array:
+        if self._on_group(step):
+            term = step.term
+            return step_work(
+                _MIDPOINT,
+                term.lagrangian,
+                term.force,
+                step.t0,
+                step.h,
+                step.q0,
+                stage_v,
+                step.args,
+            )
         # h sum_i b_i F(Q_i, V_i) . V_i: the quadrature with which the stages
         # accumulate the force's impulse.
         stage_power = jax.vmap(power)(self._applied(step, stage_v), stage_v)
@@ -269,6 +303,20 @@ class AbstractVPRK(AbstractImplicitVI):
     def stage_residual(
         self, step: StepInputs, stage_v: PyTree
     ) -> tuple[PyTree, PyTree]:
+        if self._on_group(step):
+            term = step.term
+            return step_residual(
+                _MIDPOINT,
+                term.lagrangian,
+                step.t0,
+                step.h,
+                step.q0,
+                step.p0,
+                stage_v,
+                step.args,
+                step.momentum_offset,
+                term.force,
+            )
         dl_dq, dl_dv = self._stage_grads(step, stage_v)
         a_bar = self.tableau.a_bar
         kicks = _combine(a_bar, dl_dq)
@@ -312,6 +360,8 @@ class AbstractVPRK(AbstractImplicitVI):
         # the motion. An applied force adds its own Jacobian, which need not be
         # symmetric.
         lagrangian = step.term.lagrangian
+        if self._on_group(step):
+            return frozenset()
         symmetric = isinstance(lagrangian, AbstractSeparableLagrangian) or not (
             momentum_reads_position(lagrangian, step.t0, step.q0, step.p0, step.args)
         )
@@ -320,6 +370,19 @@ class AbstractVPRK(AbstractImplicitVI):
         return frozenset()
 
     def stage_increments(self, step: StepInputs, stage_v: PyTree) -> tuple[Q, P]:
+        if self._on_group(step):
+            term = step.term
+            return step_increments(
+                _MIDPOINT,
+                term.lagrangian,
+                step.t0,
+                step.h,
+                step.q0,
+                step.p0,
+                stage_v,
+                step.args,
+                term.force,
+            )
         dl_dq, _ = self._stage_grads(step, stage_v)
         b = self.tableau.b
         dq = jtu.tree_map(lambda x: step.h * x, _combine(b, stage_v))

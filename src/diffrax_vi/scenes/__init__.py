@@ -36,6 +36,11 @@ from ._one_dof import (
     pendulum as pendulum,
     PendulumLagrangian as PendulumLagrangian,
 )
+from ._rigid import (
+    free_rigid_body as free_rigid_body,
+    heavy_top as heavy_top,
+    RigidBodyLagrangian as RigidBodyLagrangian,
+)
 from ._scene import Scene as Scene
 from ._solar import (
     NBodyLagrangian as NBodyLagrangian,

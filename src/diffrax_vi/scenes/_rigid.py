@@ -1,0 +1,106 @@
+r"""Rigid bodies on SO(3): the attitude `R` a rotation matrix, the state
+`y = (R, Pi)` with `Pi` the body angular momentum."""
+
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._lagrangian import AbstractLagrangian
+from .._space import SO3
+from ._scene import Scene
+
+
+class RigidBodyLagrangian(AbstractLagrangian):
+    r"""$L(R, \Omega) = \tfrac12\Omega^\top J\Omega - m g\,e_3\cdot R\chi$: a rigid body
+    with principal moments of inertia $J$ (diagonal), in uniform gravity acting at the
+    centre of mass $\chi$ (body frame; zero for a free body)."""
+
+    inertia: Float[Array, " 3"]
+    centre: Float[Array, " 3"]
+    weight: Float[Array, ""]
+    space = SO3()
+
+    def __call__(self, t, R, omega, args):
+        kinetic = 0.5 * jnp.sum(self.inertia * omega**2)
+        return kinetic - self.weight * (R @ self.centre)[2]
+
+
+def casimir(t, y, args) -> Array:
+    r"""$|\Pi|$, conserved by the free body's Euler equations."""
+    return jnp.sqrt(jnp.sum(y[1] ** 2))
+
+
+def orthogonality(t, y, args) -> Array:
+    r"""$\|R^\top R - I\|_{\max}$: zero on SO(3)."""
+    R = y[0]
+    return jnp.max(jnp.abs(R.T @ R - jnp.eye(3, dtype=R.dtype)))
+
+
+def spatial_momentum(t, y, args) -> Array:
+    r"""The spatial angular momentum $R\Pi$."""
+    return y[0] @ y[1]
+
+
+def free_rigid_body(
+    inertia: tuple[float, float, float] = (2.0, 1.0, 2.0 / 3.0),
+    angle: float = 1.1,
+) -> Scene:
+    r"""A free rigid body: Euler's equations $\dot\Pi = \Pi \times J^{-1}\Pi$ with
+    $\dot R = R\hat\Omega$, from $R_0 = I$ and $\Pi_0 = (\cos a, 0, \sin a)$ (the data
+    of GeometricProblems.jl: $J = (2, 1, 2/3)$, $a = 1.1$). Conserved: the energy, the
+    Casimir $|\Pi|$, the spatial angular momentum $R\Pi$; the attitude stays on
+    SO(3)."""
+    lagrangian = RigidBodyLagrangian(
+        jnp.asarray(inertia, float), jnp.zeros(3), jnp.asarray(0.0)
+    )
+    pi0 = jnp.array([jnp.cos(angle), 0.0, jnp.sin(angle)])
+    period = 2 * jnp.pi / float(jnp.linalg.norm(pi0 / lagrangian.inertia))
+    return Scene(
+        name="free_rigid_body",
+        lagrangian=lagrangian,
+        y0=(jnp.eye(3), pi0),
+        period=float(period),
+        invariants=dict(
+            casimir=casimir,
+            spatial_momentum=spatial_momentum,
+            orthogonality=orthogonality,
+        ),
+    )
+
+
+def heavy_top(
+    inertia: tuple[float, float, float] = (1.0, 1.0, 0.4),
+    weight: float = 1.0,
+    tilt: float = 0.3,
+    spin: float = 10.0,
+) -> Scene:
+    r"""The Lagrange top: a symmetric body ($J_1 = J_2$) spinning about its axis, its
+    fixed point at the origin and its centre of mass on the axis, $\chi = e_3$, under
+    the weight $m g$. Starts tilted by `tilt` about $e_1$ with body angular momentum
+    $\Pi_0 = (0, 0, J_3\,\text{spin})$. Conserved: the energy, the vertical spatial
+    angular momentum $e_3\cdot R\Pi$ (rotations about the vertical) and the spin $\Pi_3$
+    (rotations about the axis)."""
+    lagrangian = RigidBodyLagrangian(
+        jnp.asarray(inertia, float), jnp.array([0.0, 0.0, 1.0]), jnp.asarray(weight)
+    )
+    c, s = jnp.cos(tilt), jnp.sin(tilt)
+    R0 = jnp.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    pi0 = jnp.array([0.0, 0.0, inertia[2] * spin])
+    return Scene(
+        name="heavy_top",
+        lagrangian=lagrangian,
+        y0=(R0, pi0),
+        period=2 * float(jnp.pi) / spin,
+        invariants=dict(
+            vertical_momentum=lambda t, y, args: (y[0] @ y[1])[2],
+            spin=lambda t, y, args: y[1][2],
+            orthogonality=orthogonality,
+        ),
+    )
+
+
+RigidBodyLagrangian.__init__.__doc__ = """**Arguments:**
+
+- `inertia`: the principal moments of inertia $J$, shape `(3,)`.
+- `centre`: the centre of mass $\\chi$ in the body frame, shape `(3,)`.
+- `weight`: $m g$, a scalar.
+"""

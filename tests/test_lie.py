@@ -1,0 +1,216 @@
+"""Variational integrators on Lie groups: rigid bodies on SO(3), SO(2) and products,
+against scipy on Euler's equations with dR/dt = R hat(Omega) (torque written by hand,
+not by our derivatives)."""
+
+import diffrax as dfx
+import diffrax_vi as dvi
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.integrate
+
+
+def _euler_reference(scene, t1):
+    """Euler's equations of the rigid body in gravity, Pi' = Pi x Omega + w Gamma x
+    chi (Gamma = R^T e3), R' = R hat(Omega), by scipy at rtol 1e-13."""
+    lagrangian = scene.lagrangian
+    J = np.asarray(lagrangian.inertia)
+    chi = np.asarray(lagrangian.centre)
+    w = float(lagrangian.weight)
+
+    def rhs(t, y):
+        R, pi = y[:9].reshape(3, 3), y[9:]
+        omega = pi / J
+        torque = w * np.cross(R[2], chi)
+        hat = np.array(
+            [
+                [0.0, -omega[2], omega[1]],
+                [omega[2], 0.0, -omega[0]],
+                [-omega[1], omega[0], 0.0],
+            ]
+        )
+        return np.concatenate([(R @ hat).ravel(), np.cross(pi, omega) + torque])
+
+    y0 = np.concatenate([np.asarray(scene.y0[0]).ravel(), np.asarray(scene.y0[1])])
+    sol = scipy.integrate.solve_ivp(
+        rhs, (0.0, t1), y0, method="DOP853", rtol=1e-13, atol=1e-13
+    )
+    return sol.y[:9, -1].reshape(3, 3), sol.y[9:, -1]
+
+
+def _final(scene, solver, t1, dt, saveat=None, max_steps=4096):
+    # Times as arrays: one compilation serves every step size.
+    sol = dfx.diffeqsolve(
+        scene.term(),
+        solver,
+        0.0,
+        jnp.asarray(t1),
+        jnp.asarray(dt),
+        scene.y0,
+        saveat=saveat or dfx.SaveAt(t1=True),
+        max_steps=max_steps,
+    )
+    assert sol.result == dfx.RESULTS.successful
+    return sol
+
+
+@pytest.mark.parametrize(
+    "solver,order,steps",
+    [
+        (dvi.MidpointVI(), 2, (40, 80, 160)),
+        (dvi.TrapezoidalVI(), 2, (40, 80, 160)),
+        (dvi.Composition(dvi.MidpointVI(), "yoshida4"), 4, (20, 40, 80)),
+    ],
+    ids=["midpoint", "trapezoidal", "yoshida4"],
+)
+def test_order_on_the_heavy_top(solver, order, steps):
+    scene = dvi.scenes.heavy_top()
+    t1 = 1.0
+    R_ref, pi_ref = _euler_reference(scene, t1)
+    errors = []
+    for n in steps:
+        sol = _final(scene, solver, t1, t1 / n)
+        R, pi = np.asarray(sol.ys[0][-1]), np.asarray(sol.ys[1][-1])
+        errors.append(max(np.max(np.abs(R - R_ref)), np.max(np.abs(pi - pi_ref))))
+    slope = -np.polyfit(np.log(steps), np.log(errors), 1)[0]
+    assert abs(slope - order) < 0.3, (slope, errors)
+
+
+def test_free_rigid_body_keeps_the_group_the_casimir_and_bounded_energy():
+    """10^5 steps at h = 0.1: R orthogonal and |Pi| constant to round-off, the
+    energy error oscillating without drift (last tenth within 2x the first)."""
+    scene = dvi.scenes.free_rigid_body()
+    n = 100_000
+    ts = jnp.linspace(0.0, 0.1 * n, 201)
+    sol = _final(scene, dvi.MidpointVI(), 0.1 * n, 0.1, dfx.SaveAt(ts=ts), n + 1)
+    ys = sol.ys
+    energy = jax.vmap(lambda y: scene.energy(0.0, y, None))(ys)
+    error = jnp.abs(energy - scene.energy(0.0, scene.y0, None))
+    casimir = jax.vmap(lambda y: scene.invariants["casimir"](0.0, y, None))(ys)
+    orthogonality = jax.vmap(lambda y: scene.invariants["orthogonality"](0.0, y, None))(
+        ys
+    )
+    assert jnp.max(orthogonality) < 1e-12
+    assert jnp.max(jnp.abs(casimir - casimir[0])) < 1e-12
+    first, last = jnp.max(error[1:21]), jnp.max(error[-20:])
+    assert 0 < last < 2 * first, (first, last)
+
+
+def test_heavy_top_keeps_its_noether_momenta():
+    """Rotations about the vertical and about the symmetric body's axis are
+    symmetries: the discrete Noether theorem keeps both momenta to round-off."""
+    scene = dvi.scenes.heavy_top()
+    y1 = _final(scene, dvi.TrapezoidalVI(), 100.0, 0.01, max_steps=10_001).ys
+    y1 = (y1[0][-1], y1[1][-1])
+    for name in ("vertical_momentum", "spin"):
+        fn = scene.invariants[name]
+        assert abs(fn(0.0, y1, None) - fn(0.0, scene.y0, None)) < 1e-11, name
+
+
+def test_runge_kutta_on_the_same_term_drifts_off_the_group():
+    scene = dvi.scenes.free_rigid_body()
+    orthogonality = scene.invariants["orthogonality"]
+    for solver, bound in ((dfx.Tsit5(), None), (dvi.MidpointVI(), 1e-13)):
+        y = _final(scene, solver, 100.0, 0.1).ys
+        off = orthogonality(0.0, (y[0][-1], y[1][-1]), None)
+        if bound is None:
+            assert off > 1e-9
+        else:
+            assert off < bound
+
+
+def test_so2_pendulum_equals_the_angle_form():
+    """SO(2) is abelian: the pendulum as a rotation matrix steps exactly as the angle
+    form of the same Lagrangian, to round-off."""
+    angle = lambda R: jnp.arctan2(R[1, 0], R[0, 0])
+    as_rotation = dvi.Lagrangian(
+        lambda t, R, w, args: 0.5 * w**2 + jnp.cos(angle(R)), space=dvi.SO2()
+    )
+    as_angle = dvi.Lagrangian(lambda t, q, v, args: 0.5 * v**2 + jnp.cos(q))
+    q0, p0 = jnp.array(1.0), jnp.array(0.3)
+    R0 = jnp.array([[jnp.cos(q0), -jnp.sin(q0)], [jnp.sin(q0), jnp.cos(q0)]])
+    for solver in (dvi.MidpointVI(), dvi.TrapezoidalVI()):
+        a = dfx.diffeqsolve(
+            dvi.LagrangianTerm(as_rotation), solver, 0.0, 10.0, 0.05, (R0, p0)
+        ).ys
+        b = dfx.diffeqsolve(
+            dvi.LagrangianTerm(as_angle), solver, 0.0, 10.0, 0.05, (q0, p0)
+        ).ys
+        assert abs(angle(a[0][-1]) - b[0][-1]) < 1e-12
+        assert abs(a[1][-1] - b[1][-1]) < 1e-12
+
+
+def test_product_space_steps_each_factor():
+    """On R^3 x SO(3), q = (x, R): an uncoupled particle and free body step as each
+    would alone."""
+    J = jnp.array([2.0, 1.0, 2.0 / 3.0])
+    body = lambda W: 0.5 * jnp.sum(J * W**2)
+    particle = lambda x, v: 0.5 * jnp.sum(v**2) - 0.5 * jnp.sum(x**2)
+    both = dvi.Lagrangian(
+        lambda t, q, v, args: particle(q[0], v[0]) + body(v[1]),
+        space=(dvi.Euclidean(), dvi.SO3()),
+    )
+    x0, px0 = jnp.array([1.0, 0.0, 0.5]), jnp.array([0.0, 1.0, 0.0])
+    R0, pi0 = jnp.eye(3), jnp.array([jnp.cos(1.1), 0.0, jnp.sin(1.1)])
+    solve = lambda L, y0: (
+        dfx.diffeqsolve(dvi.LagrangianTerm(L), dvi.MidpointVI(), 0.0, 5.0, 0.05, y0).ys
+    )
+    (x, R), (px, pi) = solve(both, ((x0, R0), (px0, pi0)))
+    alone_x = solve(dvi.Lagrangian(lambda t, x, v, a: particle(x, v)), (x0, px0))
+    alone_R = solve(
+        dvi.Lagrangian(lambda t, R, W, a: body(W), space=dvi.SO3()), (R0, pi0)
+    )
+    assert jnp.max(jnp.abs(x - alone_x[0])) < 1e-13
+    assert jnp.max(jnp.abs(px - alone_x[1])) < 1e-13
+    assert jnp.max(jnp.abs(R - alone_R[0])) < 1e-13
+    assert jnp.max(jnp.abs(pi - alone_R[1])) < 1e-13
+
+
+def test_gradients_wrt_inertia_and_initial_attitude_equal_finite_differences():
+    scene = dvi.scenes.heavy_top()
+
+    @eqx.filter_jit
+    def loss(inertia, tilt):
+        lagrangian = eqx.tree_at(lambda L: L.inertia, scene.lagrangian, inertia)
+        c, s = jnp.cos(tilt), jnp.sin(tilt)
+        R0 = jnp.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+        sol = dfx.diffeqsolve(
+            dvi.LagrangianTerm(lagrangian),
+            dvi.MidpointVI(),
+            0.0,
+            1.0,
+            0.02,
+            (R0, scene.y0[1]),
+        )
+        return jnp.sum(sol.ys[0][-1][:, 2] * jnp.array([1.0, 2.0, 3.0]))
+
+    inertia, tilt = scene.lagrangian.inertia, jnp.asarray(0.3)
+    g_inertia, g_tilt = jax.grad(loss, argnums=(0, 1))(inertia, tilt)
+    eps = 1e-6
+    for i in range(3):
+        e = jnp.zeros(3).at[i].set(eps)
+        fd = (loss(inertia + e, tilt) - loss(inertia - e, tilt)) / (2 * eps)
+        assert abs(g_inertia[i] - fd) < 1e-6 * (1 + abs(fd))
+    fd = (loss(inertia, tilt + eps) - loss(inertia, tilt - eps)) / (2 * eps)
+    assert abs(g_tilt - fd) < 1e-6 * (1 + abs(fd))
+
+
+def test_what_a_group_cannot_take_says_what_to_use():
+    scene = dvi.scenes.free_rigid_body()
+    term = scene.term()
+    for solver, match in (
+        (dvi.GaussVPRK(2), "Composition"),
+        (dvi.LinearizedVI(), "MidpointVI"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            dfx.diffeqsolve(term, solver, 0.0, 1.0, 0.1, scene.y0)
+    with pytest.raises(ValueError, match="group"):
+        dvi.terms_for(dvi.StormerVerlet(), scene.lagrangian)
+    with pytest.raises(ValueError, match="group"):
+        dvi.TangentLift(scene.lagrangian)
+    with pytest.raises(ValueError, match="group"):
+        dvi.LagrangianTerm(scene.lagrangian, constraint=lambda t, R, a: R[0, 0])
+    with pytest.raises(ValueError, match=r"\(3,\)"):
+        dfx.diffeqsolve(term, dvi.MidpointVI(), 0.0, 1.0, 0.1, (jnp.eye(3), jnp.eye(3)))
