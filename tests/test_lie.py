@@ -62,8 +62,10 @@ def _final(scene, solver, t1, dt, saveat=None, max_steps=4096):
         (dvi.MidpointVI(), 2, (40, 80, 160)),
         (dvi.TrapezoidalVI(), 2, (40, 80, 160)),
         (dvi.Composition(dvi.MidpointVI(), "yoshida4"), 4, (20, 40, 80)),
+        (dvi.Composition(dvi.TrapezoidalVI(), "kahan_li6"), 6, (10, 20, 40)),
+        (dvi.Composition(dvi.MidpointVI(), "kahan_li8"), 8, (10, 15, 20)),
     ],
-    ids=["midpoint", "trapezoidal", "yoshida4"],
+    ids=["midpoint", "trapezoidal", "yoshida4", "kahan_li6", "kahan_li8"],
 )
 def test_order_on_the_heavy_top(solver, order, steps):
     scene = dvi.scenes.heavy_top()
@@ -214,3 +216,126 @@ def test_what_a_group_cannot_take_says_what_to_use():
         dvi.LagrangianTerm(scene.lagrangian, constraint=lambda t, R, a: R[0, 0])
     with pytest.raises(ValueError, match=r"\(3,\)"):
         dfx.diffeqsolve(term, dvi.MidpointVI(), 0.0, 1.0, 0.1, (jnp.eye(3), jnp.eye(3)))
+
+
+def test_so3_pull_is_the_transposed_right_derivative_of_exp():
+    """The closed form (the left Jacobian of SO(3), transposed) against its
+    definition, (d exp^R_x)^T with d exp^R_x(y) = vee(D exp(x)[y] exp(x)^T), by
+    automatic differentiation of jaxlie's exp, across the series threshold."""
+    space = dvi.SO3()
+    exp = lambda x: space.retract(jnp.eye(3), x)
+
+    def definition(x, w):
+        def right(y):
+            r, dr = jax.jvp(exp, (x,), (y,))
+            skew = dr @ r.T
+            return 0.5 * jnp.stack(
+                [
+                    skew[2, 1] - skew[1, 2],
+                    skew[0, 2] - skew[2, 0],
+                    skew[1, 0] - skew[0, 1],
+                ]
+            )
+
+        return jax.linear_transpose(right, x)(w)[0]
+
+    rng = np.random.default_rng(0)
+    for scale in (0.0, 1e-9, 1e-3, 9e-3, 1.1e-2, 0.3, 3.0):
+        x = jnp.asarray(rng.normal(size=3)) * scale
+        w = jnp.asarray(rng.normal(size=3))
+        assert jnp.max(jnp.abs(space.pull(x, w) - definition(x, w))) < 1e-14, scale
+
+
+def _height_monitor(t, y, args):
+    # The height of the top's centre of mass, shifted positive: a function of the
+    # position alone, so the step sequence is reversible.
+    return 1.5 + y[0][2, 2]
+
+
+def test_reversible_steps_on_the_group_return_to_the_start():
+    scene = dvi.scenes.heavy_top(tilt=1.0, spin=3.0)
+    term, solver = scene.term(), dvi.MidpointVI()
+
+    def solve(t0, t1, dt0, y0, density=1.0, saveat=None):
+        # Times as arrays: the forward and backward solves share one compilation.
+        return dfx.diffeqsolve(
+            term,
+            solver,
+            jnp.asarray(t0),
+            jnp.asarray(t1),
+            jnp.asarray(dt0),
+            y0,
+            stepsize_controller=dvi.ReversibleController(
+                _height_monitor, density=jnp.asarray(density)
+            ),
+            saveat=saveat or dfx.SaveAt(t1=True, controller_state=True),
+            max_steps=1000,
+        )
+
+    steps = solve(0.0, 5.0, 0.02, scene.y0, saveat=dfx.SaveAt(steps=True))
+    t_node = float(steps.ts[199])
+    assert float(jnp.ptp(jnp.diff(steps.ts[:200]))) > 1e-3  # the steps varied
+    forward = solve(0.0, t_node, 0.02, scene.y0)
+    end = (forward.ys[0][-1], forward.ys[1][-1])
+    back = solve(t_node, 0.0, -0.02, end, forward.controller_state.density)
+    for start, returned in zip(scene.y0, back.ys):
+        assert jnp.max(jnp.abs(returned[-1] - start)) < 1e-11
+    vertical = scene.invariants["vertical_momentum"]
+    assert abs(vertical(0.0, end, None) - vertical(0.0, scene.y0, None)) < 1e-12
+
+
+def test_solve_fixed_steps_on_the_group_equals_diffeqsolve():
+    scene = dvi.scenes.heavy_top()
+    term, solver = scene.term(), dvi.TrapezoidalVI()
+    fast = dvi.solve_fixed_steps(term, solver, 0.0, 2.0, 0.01, scene.y0)
+    sol = dfx.diffeqsolve(term, solver, 0.0, 2.0, 0.01, scene.y0)
+    for a, b in zip(fast.ys, sol.ys):
+        assert jnp.max(jnp.abs(a[-1] - b[-1])) < 1e-12
+
+
+def test_float32_on_the_group():
+    scene = dvi.scenes.heavy_top()
+    cast = lambda x: jnp.asarray(x, jnp.float32)
+    lagrangian = jax.tree.map(cast, scene.lagrangian)
+    y0 = jax.tree.map(cast, scene.y0)
+    sol = dfx.diffeqsolve(
+        dvi.LagrangianTerm(lagrangian),
+        dvi.MidpointVI(),
+        cast(0.0),
+        cast(10.0),
+        cast(0.01),
+        y0,
+        max_steps=1001,
+    )
+    assert sol.result == dfx.RESULTS.successful
+    R, pi = sol.ys[0][-1], sol.ys[1][-1]
+    assert R.dtype == jnp.float32 and pi.dtype == jnp.float32
+    eps = float(jnp.finfo(jnp.float32).eps)
+    # Round-off of 1000 steps in float32, not the method's error.
+    assert float(jnp.max(jnp.abs(R.T @ R - jnp.eye(3, dtype=R.dtype)))) < 100 * eps
+    vertical = scene.invariants["vertical_momentum"]
+    assert abs(vertical(0.0, (R, pi), None) - vertical(0.0, y0, None)) < 1e3 * eps
+
+
+@pytest.mark.parametrize("solver", [dvi.MidpointVI(), dvi.TrapezoidalVI()])
+def test_a_damping_torque_on_a_sphere_decays_the_momentum_exactly(solver):
+    """A spherical body (J = j I) under the body torque -c Omega: Pi x Omega = 0, so
+    Pi(t) = Pi0 exp(-c t / j) exactly; the discrete Lagrange-d'Alembert principle on
+    the group converges to it at order 2."""
+    j, c = 2.0, 0.5
+    sphere = dvi.Lagrangian(
+        lambda t, R, W, args: 0.5 * j * jnp.sum(W**2), space=dvi.SO3()
+    )
+    term = dvi.LagrangianTerm(sphere, force=lambda t, R, W, args: -c * W)
+    pi0 = jnp.array([0.3, -0.4, 1.2])
+    t1 = 2.0
+    exact = pi0 * jnp.exp(-c * t1 / j)
+    errors = []
+    steps = (20, 40, 80)
+    for n in steps:
+        sol = dfx.diffeqsolve(
+            term, solver, 0.0, t1, jnp.asarray(t1 / n), (jnp.eye(3), pi0)
+        )
+        errors.append(float(jnp.max(jnp.abs(sol.ys[1][-1] - exact))))
+    slope = -np.polyfit(np.log(steps), np.log(errors), 1)[0]
+    assert abs(slope - 2) < 0.3, (slope, errors)

@@ -52,8 +52,15 @@ def _final_sum(lagrangian, scene):
     return sum(jnp.sum(y[-1]) for y in jax.tree.leaves(sol.ys))
 
 
-# The two largest scenes take most of the time; run them with `-m slow`.
-SLOW_SCENES = ("double_pendulum", "outer_solar_system", "bead_wire")
+# The two largest scenes take most of the time; run them with `-m slow`. The rigid
+# bodies' gradients are checked in tests/test_lie.py.
+SLOW_SCENES = (
+    "double_pendulum",
+    "outer_solar_system",
+    "bead_wire",
+    "free_rigid_body",
+    "heavy_top",
+)
 
 
 @pytest.mark.parametrize(

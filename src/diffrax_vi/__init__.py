@@ -33,6 +33,8 @@ from ._scan import (
     FixedStepSolution as FixedStepSolution,
     solve_fixed_steps as solve_fixed_steps,
 )
+from ._so2 import SO2 as SO2
+from ._so3 import SO3 as SO3
 from ._solver import (
     AbstractImplicitVI as AbstractImplicitVI,
     AbstractSymmetricSolver as AbstractSymmetricSolver,
@@ -50,12 +52,7 @@ from ._solver import (
     VPRK as VPRK,
     VPRKTableau as VPRKTableau,
 )
-from ._space import (
-    AbstractSpace as AbstractSpace,
-    Euclidean as Euclidean,
-    SO2 as SO2,
-    SO3 as SO3,
-)
+from ._space import AbstractSpace as AbstractSpace, Euclidean as Euclidean
 from ._term import (
     LagrangianTerm as LagrangianTerm,
     separable_terms as separable_terms,

@@ -26,19 +26,21 @@ def applied_force(
     force: Callable[..., PyTree], t: RealScalarLike, q: Q, v: V, args: Args
 ) -> P:
     """`force(t, q, v, args)`, checked at trace time to have the structure, shapes and
-    floating dtype of `q` (and cast to its dtype)."""
+    floating dtype of the velocity `v` (of `q` in a vector space; on a group a force
+    is a torque in the algebra, like the momentum), and cast to its dtype."""
     out = force(t, q, v, args)
-    if jtu.tree_structure(out) != jtu.tree_structure(q):
+    if jtu.tree_structure(out) != jtu.tree_structure(v):
         raise ValueError(
             "The force must return a generalised force with the PyTree structure of "
             f"q, one component per degree of freedom; got {jtu.tree_structure(out)} "
-            f"for q of structure {jtu.tree_structure(q)}."
+            f"for q of structure {jtu.tree_structure(v)} (on a group: of the "
+            "velocity, e.g. a body torque of shape (3,) on SO3)."
         )
-    for f, qi in zip(jtu.tree_leaves(out), jtu.tree_leaves(q)):
-        if jnp.shape(f) != jnp.shape(qi):
+    for f, vi in zip(jtu.tree_leaves(out), jtu.tree_leaves(v)):
+        if jnp.shape(f) != jnp.shape(vi):
             raise ValueError(
                 f"The force returned a leaf of shape {jnp.shape(f)} for a position "
-                f"of shape {jnp.shape(qi)}: it needs one component per degree of "
+                f"of shape {jnp.shape(vi)}: it needs one component per degree of "
                 "freedom (broadcast it, e.g. `jnp.full_like(q, torque)`)."
             )
         if not jnp.issubdtype(jnp.result_type(f), jnp.floating):
@@ -46,7 +48,7 @@ def applied_force(
                 f"The force must be real floating point, got dtype "
                 f"{jnp.result_type(f)}."
             )
-    return jtu.tree_map(lambda f, qi: jnp.asarray(f, jnp.result_type(qi)), out, q)
+    return jtu.tree_map(lambda f, vi: jnp.asarray(f, jnp.result_type(vi)), out, v)
 
 
 def depends_on_velocity(

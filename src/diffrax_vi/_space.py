@@ -32,15 +32,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-import jaxlie
-from jaxtyping import Array, Float, PyTree
+from jaxtyping import PyTree
 
 
 class AbstractSpace(eqx.Module):
     """A configuration space: how a position moves by a tangent increment.
 
-    A subclass is one file: `retract`, `difference`, `tangent`, `velocity`, `pull`,
-    `transport` and `coadjoint` (see the module's docstring for their mathematics).
+    A subclass is one file (`_so3.py`, `_so2.py`): `retract`, `difference`,
+    `tangent`, `velocity`, `pull`, `transport` and `coadjoint` (see the module's
+    docstring for their mathematics).
     """
 
     @abc.abstractmethod
@@ -96,106 +96,6 @@ class Euclidean(AbstractSpace):
 
     def coadjoint(self, xi, mu):
         return jtu.tree_map(jnp.zeros_like, mu)
-
-
-def hat(omega: Float[Array, " 3"]) -> Float[Array, "3 3"]:
-    r"""$\hat\omega$, the skew matrix with $\hat\omega u = \omega \times u$."""
-    x, y, z = omega[0], omega[1], omega[2]
-    zero = jnp.zeros_like(x)
-    return jnp.stack(
-        [
-            jnp.stack([zero, -z, y]),
-            jnp.stack([z, zero, -x]),
-            jnp.stack([-y, x, zero]),
-        ]
-    )
-
-
-def vee(skew: Float[Array, "3 3"]) -> Float[Array, " 3"]:
-    """The vector of a skew matrix (of its skew part), the inverse of `hat`."""
-    return 0.5 * jnp.stack(
-        [skew[2, 1] - skew[1, 2], skew[0, 2] - skew[2, 0], skew[1, 0] - skew[0, 1]]
-    )
-
-
-def _exp3(x: Float[Array, " 3"]) -> Float[Array, "3 3"]:
-    return jaxlie.SO3.exp(x).as_matrix()
-
-
-class SO3(AbstractSpace):
-    r"""The rotation group SO(3): attitudes of a rigid body.
-
-    The position is a rotation matrix `R` of shape `(3, 3)`, the velocity the body
-    angular velocity $\Omega$ (shape `(3,)`) with $\dot R = R\hat\Omega$, the momentum
-    the body angular momentum $\Pi = \partial L/\partial\Omega$. A step moves
-    $R \mapsto R\exp(\hat x)$ (jaxlie's exponential), so `R` stays a rotation to
-    round-off. $\mathrm{Ad}_R = R$ and $\mathrm{ad}^*_\Omega\Pi = \Pi \times \Omega$.
-    """
-
-    def retract(self, q, x):
-        return q @ _exp3(x)
-
-    def difference(self, q0, q1):
-        return jaxlie.SO3.from_matrix(q0.T @ q1).log()
-
-    def tangent(self, q):
-        return jnp.zeros(q.shape[:-1], q.dtype)
-
-    def velocity(self, q, xi):
-        return q @ hat(xi)
-
-    def pull(self, x, w):
-        # d tau^R_x (y) = vee(D exp(x)[y] exp(x)^T), linear in y: its transpose by
-        # reverse mode, which stays exact at x = 0 where the closed form divides by
-        # |x|.
-        def right(y):
-            r, dr = jax.jvp(_exp3, (x,), (y,))
-            return vee(dr @ r.T)
-
-        return jax.linear_transpose(right, x)(w)[0]
-
-    def transport(self, x, w):
-        return _exp3(x).T @ w
-
-    def coadjoint(self, xi, mu):
-        return jnp.cross(mu, xi)
-
-
-def _rot2(x: Array) -> Float[Array, "2 2"]:
-    c, s = jnp.cos(x), jnp.sin(x)
-    return jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])
-
-
-class SO2(AbstractSpace):
-    r"""The rotation group SO(2): a planar angle kept as a rotation matrix.
-
-    The position is a `(2, 2)` rotation matrix, the velocity the angular velocity
-    $\omega$ (a scalar) with $\dot R = R\,\omega J$, $J$ the quarter turn. The group is
-    abelian, so `pull`, `transport` and `coadjoint` are trivial and a solver on SO(2)
-    steps the angle form of the same Lagrangian, to round-off.
-    """
-
-    def retract(self, q, x):
-        return q @ _rot2(x)
-
-    def difference(self, q0, q1):
-        r = q0.T @ q1
-        return jnp.arctan2(r[1, 0], r[0, 0])
-
-    def tangent(self, q):
-        return jnp.zeros((), q.dtype)
-
-    def velocity(self, q, xi):
-        return q @ (xi * jnp.array([[0.0, -1.0], [1.0, 0.0]], q.dtype))
-
-    def pull(self, x, w):
-        return w
-
-    def transport(self, x, w):
-        return w
-
-    def coadjoint(self, xi, mu):
-        return jnp.zeros_like(mu)
 
 
 def is_space(x) -> bool:

@@ -6,7 +6,7 @@ import jax.tree_util as jtu
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, PyTree
 
-from .._discrete import step_increments, step_residual, step_work, TrapezoidalRule
+from .._discrete import TrapezoidalRule
 from .._force import applied_force, depends_on_velocity
 from .._lagrangian import (
     AbstractSeparableLagrangian,
@@ -24,6 +24,7 @@ from .base import (
 )
 from .constrained import constrained_step, init_constrained
 from .implicit import IMPLICIT_ARGS_DOC, init_unknowns, solve_step, Unknowns
+from .rule import rule_increments, rule_residual, rule_work
 from .stormer_verlet import kick_drift_kick, poisoned_force
 
 
@@ -41,10 +42,7 @@ def _force(step: StepInputs, t, q) -> PyTree:
 
 
 def _work(step: StepInputs, v) -> PyTree:
-    term = step.term
-    return step_work(
-        _RULE, term.lagrangian, term.force, step.t0, step.h, step.q0, v, step.args
-    )
+    return rule_work(_RULE, step, v)
 
 
 def _explicit(step: StepInputs) -> bool:
@@ -61,32 +59,11 @@ def _explicit(step: StepInputs) -> bool:
 
 
 def _residual(step: StepInputs, v) -> tuple[PyTree, PyTree]:
-    return step_residual(
-        _RULE,
-        step.term.lagrangian,
-        step.t0,
-        step.h,
-        step.q0,
-        step.p0,
-        v,
-        step.args,
-        step.momentum_offset,
-        step.term.force,
-    )
+    return rule_residual(_RULE, step, v)
 
 
 def _increments(step: StepInputs, v) -> tuple[PyTree, PyTree]:
-    return step_increments(
-        _RULE,
-        step.term.lagrangian,
-        step.t0,
-        step.h,
-        step.q0,
-        step.p0,
-        v,
-        step.args,
-        step.term.force,
-    )
+    return rule_increments(_RULE, step, v)
 
 
 class TrapezoidalVI(

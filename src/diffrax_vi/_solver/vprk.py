@@ -33,7 +33,7 @@ from equinox import AbstractVar
 from jaxtyping import Array, PyTree
 
 from .._custom_types import P, Q, V
-from .._discrete import MidpointRule, step_increments, step_residual, step_work
+from .._discrete import MidpointRule
 from .._force import applied_force, power
 from .._lagrangian import (
     AbstractSeparableLagrangian,
@@ -44,6 +44,7 @@ from .._lagrangian import (
 from .._space import is_euclidean
 from .base import StepInputs
 from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC, SYMMETRIC_POSITIVE
+from .rule import rule_increments, rule_residual, rule_work
 
 
 _MIDPOINT = MidpointRule()
@@ -284,17 +285,7 @@ class AbstractVPRK(AbstractImplicitVI):
 
     def stage_work(self, step: StepInputs, stage_v: PyTree) -> Array:
         if self._on_group(step):
-            term = step.term
-            return step_work(
-                _MIDPOINT,
-                term.lagrangian,
-                term.force,
-                step.t0,
-                step.h,
-                step.q0,
-                stage_v,
-                step.args,
-            )
+            return rule_work(_MIDPOINT, step, stage_v)
         # h sum_i b_i F(Q_i, V_i) . V_i: the quadrature with which the stages
         # accumulate the force's impulse.
         stage_power = jax.vmap(power)(self._applied(step, stage_v), stage_v)
@@ -304,19 +295,7 @@ class AbstractVPRK(AbstractImplicitVI):
         self, step: StepInputs, stage_v: PyTree
     ) -> tuple[PyTree, PyTree]:
         if self._on_group(step):
-            term = step.term
-            return step_residual(
-                _MIDPOINT,
-                term.lagrangian,
-                step.t0,
-                step.h,
-                step.q0,
-                step.p0,
-                stage_v,
-                step.args,
-                step.momentum_offset,
-                term.force,
-            )
+            return rule_residual(_MIDPOINT, step, stage_v)
         dl_dq, dl_dv = self._stage_grads(step, stage_v)
         a_bar = self.tableau.a_bar
         kicks = _combine(a_bar, dl_dq)
@@ -371,18 +350,7 @@ class AbstractVPRK(AbstractImplicitVI):
 
     def stage_increments(self, step: StepInputs, stage_v: PyTree) -> tuple[Q, P]:
         if self._on_group(step):
-            term = step.term
-            return step_increments(
-                _MIDPOINT,
-                term.lagrangian,
-                step.t0,
-                step.h,
-                step.q0,
-                step.p0,
-                stage_v,
-                step.args,
-                term.force,
-            )
+            return rule_increments(_MIDPOINT, step, stage_v)
         dl_dq, _ = self._stage_grads(step, stage_v)
         b = self.tableau.b
         dq = jtu.tree_map(lambda x: step.h * x, _combine(b, stage_v))

@@ -67,6 +67,8 @@ SCENES = {
     "forced_duffing": forced_duffing,
     "cartesian_pendulum": cartesian_pendulum,
     "four_bar": four_bar,
+    "free_rigid_body": free_rigid_body,
+    "heavy_top": heavy_top,
 }
 # The scenes with a step-size monitor (`Scene.monitor`), for `+Adaptive` methods.
 MONITORED = ("kepler", "outer_solar_system", "pythagorean_three_body")

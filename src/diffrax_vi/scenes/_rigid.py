@@ -5,7 +5,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._lagrangian import AbstractLagrangian
-from .._space import SO3
+from .._so3 import SO3
 from ._scene import Scene
 
 

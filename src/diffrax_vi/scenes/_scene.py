@@ -1,12 +1,14 @@
 from collections.abc import Callable
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import jax.random as jr
 import jax.tree_util as jtu
 from jaxtyping import Array, PRNGKeyArray, PyTree
 
 from .._lagrangian import AbstractLagrangian, energy
+from .._space import is_euclidean, retract
 from .._term import LagrangianTerm
 
 
@@ -67,9 +69,9 @@ class Scene(eqx.Module):
     ) -> tuple[PyTree[Array], PyTree[Array]]:
         """`n` initial states near `y0`, for ensembles: each leaf of `y0` plus
         Gaussian noise of standard deviation `spread * (1 + |leaf|)`. The first member
-        is `y0` itself. Returns `y0`'s structure with a leading axis of size `n`."""
-        leaves, treedef = jtu.tree_flatten(self.y0)
-        keys = jr.split(key, len(leaves))
+        is `y0` itself. Returns `y0`'s structure with a leading axis of size `n`. On a
+        group the positions move along it, `q0` moved by a tangent increment of
+        standard deviation `spread`."""
 
         def perturb(k, x):
             x = jnp.asarray(x)
@@ -77,6 +79,26 @@ class Scene(eqx.Module):
                 jr.normal(k, (n, *x.shape), x.dtype) * (spread * (1 + jnp.abs(x)))[None]
             )
             return (x[None] + noise).at[0].set(x)
+
+        space = self.lagrangian.space
+        if not is_euclidean(space):
+            # On a group the positions move along it, by a tangent increment.
+            q0, p0 = self.y0
+            key_q, key_p = jr.split(key)
+            p_leaves, p_def = jtu.tree_flatten(p0)
+            dq = jtu.tree_unflatten(
+                p_def,
+                [
+                    (spread * jr.normal(k, (n, *jnp.shape(x)), x.dtype)).at[0].set(0.0)
+                    for k, x in zip(jr.split(key_q, len(p_leaves)), p_leaves)
+                ],
+            )
+            q = jax.vmap(lambda x: retract(space, q0, x))(dq)
+            keys = jr.split(key_p, len(p_leaves))
+            p = jtu.tree_unflatten(p_def, list(map(perturb, keys, p_leaves)))
+            return q, p
+        leaves, treedef = jtu.tree_flatten(self.y0)
+        keys = jr.split(key, len(leaves))
 
         return jtu.tree_unflatten(treedef, list(map(perturb, keys, leaves)))
 
