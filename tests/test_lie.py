@@ -144,6 +144,7 @@ def test_so2_pendulum_equals_the_angle_form():
         assert abs(a[1][-1] - b[1][-1]) < 1e-12
 
 
+@pytest.mark.slow  # the coupled product is tested on the satellite below
 def test_product_space_steps_each_factor():
     """On R^3 x SO(3), q = (x, R): an uncoupled particle and free body step as each
     would alone."""
@@ -339,3 +340,53 @@ def test_a_damping_torque_on_a_sphere_decays_the_momentum_exactly(solver):
         errors.append(float(jnp.max(jnp.abs(sol.ys[1][-1] - exact))))
     slope = -np.polyfit(np.log(steps), np.log(errors), 1)[0]
     assert abs(slope - 2) < 0.3, (slope, errors)
+
+
+def test_satellite_on_a_product_space_converges_and_keeps_its_angular_momentum():
+    """R^3 x SO(3), coupled by the gravity-gradient torque: order 2 against scipy on
+    the term's Euler-Poincare equations, and the total angular momentum x x p + R Pi
+    (the Noether momentum of rotating orbit and attitude together) to round-off."""
+    from .helpers import reference
+
+    scene = dvi.scenes.satellite()
+    t1 = 1.0
+    ref = reference(scene.term(), scene.y0, t1)
+    steps = (20, 40, 80)
+    errors = []
+    for n in steps:
+        y = _final(scene, dvi.MidpointVI(), t1, t1 / n, max_steps=1001).ys
+        errors.append(
+            max(
+                float(jnp.max(jnp.abs(a[-1] - b)))
+                for a, b in zip(jax.tree.leaves(y), jax.tree.leaves(ref))
+            )
+        )
+    slope = -np.polyfit(np.log(steps), np.log(errors), 1)[0]
+    assert abs(slope - 2) < 0.3, (slope, errors)
+    momentum = scene.invariants["angular_momentum"]
+    y = _final(scene, dvi.MidpointVI(), 20.0, 0.02, max_steps=1001).ys
+    end = jax.tree.map(lambda x: x[-1], y)
+    assert (
+        jnp.max(jnp.abs(momentum(0.0, end, None) - momentum(0.0, scene.y0, None)))
+        < 1e-12
+    )
+    # The torque did move momentum between the orbit and the attitude.
+    assert jnp.max(jnp.abs(end[1][1] - scene.y0[1][1])) > 1e-4
+
+
+def test_drift_study_of_an_ensemble_on_the_group():
+    """The study's ensemble (vmap over states that `Scene.perturbed` moves along
+    SO(3)): every member keeps the group and its Casimir."""
+    from diffrax_vi.study import drift
+
+    (midpoint,) = drift(
+        dvi.scenes.free_rigid_body(),
+        [dvi.MidpointVI()],
+        periods=5,
+        steps_per_period=50,
+        n_save=10,
+        ensemble=4,
+    ).runs
+    assert midpoint.result == "successful"
+    assert midpoint.max_error("orthogonality") < 1e-13
+    assert midpoint.max_error("casimir") < 1e-13

@@ -40,6 +40,8 @@ from ._rigid import (
     free_rigid_body as free_rigid_body,
     heavy_top as heavy_top,
     RigidBodyLagrangian as RigidBodyLagrangian,
+    satellite as satellite,
+    SatelliteLagrangian as SatelliteLagrangian,
 )
 from ._scene import Scene as Scene
 from ._solar import (
@@ -69,6 +71,7 @@ SCENES = {
     "four_bar": four_bar,
     "free_rigid_body": free_rigid_body,
     "heavy_top": heavy_top,
+    "satellite": satellite,
 }
 # The scenes with a step-size monitor (`Scene.monitor`), for `+Adaptive` methods.
 MONITORED = ("kepler", "outer_solar_system", "pythagorean_three_body")

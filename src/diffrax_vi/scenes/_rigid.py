@@ -6,6 +6,7 @@ from jaxtyping import Array, Float
 
 from .._lagrangian import AbstractLagrangian
 from .._so3 import SO3
+from .._space import Euclidean
 from ._scene import Scene
 
 
@@ -94,6 +95,75 @@ def heavy_top(
             vertical_momentum=lambda t, y, args: (y[0] @ y[1])[2],
             spin=lambda t, y, args: y[1][2],
             orthogonality=orthogonality,
+        ),
+    )
+
+
+class SatelliteLagrangian(AbstractLagrangian):
+    r"""A rigid satellite in a central field on $\mathbb R^3 \times SO(3)$,
+    `q = (x, R)`:
+
+    $$L = \tfrac12 m|\dot x|^2 + \tfrac12\Omega^\top J\Omega + \frac{\mu m}{r}
+    + \frac{\mu}{2r^3}\big(\mathrm{tr}\,J - 3\,\hat r^\top R J R^\top \hat r\big),$$
+
+    the orbit and the attitude coupled by MacCullagh's gravity-gradient potential
+    (principal moments $J$, $\hat r = x/r$)."""
+
+    mass: Float[Array, ""]
+    inertia: Float[Array, " 3"]
+    mu: Float[Array, ""]
+    space = (Euclidean(), SO3())
+
+    def __call__(self, t, q, v, args):
+        (x, R), (xdot, omega) = q, v
+        r2 = jnp.sum(x**2)
+        r = jnp.sqrt(r2)
+        body_direction = R.T @ x / r
+        gradient = (
+            0.5
+            * self.mu
+            / (r * r2)
+            * (jnp.sum(self.inertia) - 3 * jnp.sum(self.inertia * body_direction**2))
+        )
+        kinetic = 0.5 * self.mass * jnp.sum(xdot**2) + 0.5 * jnp.sum(
+            self.inertia * omega**2
+        )
+        return kinetic + self.mu * self.mass / r + gradient
+
+
+def total_angular_momentum(t, y, args) -> Array:
+    r"""$x \times p_x + R\Pi$: conserved, as rotating orbit and attitude together is a
+    symmetry."""
+    (x, R), (p, pi) = y
+    return jnp.cross(x, p) + R @ pi
+
+
+def satellite(
+    inertia: tuple[float, float, float] = (1e-3, 2e-3, 3e-3),
+    spin: float = 2.0,
+) -> Scene:
+    r"""A rigid satellite on a circular orbit of radius 1 ($\mu = m = 1$, period
+    $2\pi$), spinning at `spin` about its body axis $e_1$, which lies in the orbit's
+    plane, so that the gravity-gradient torque exchanges angular momentum between
+    the attitude and the orbit. The moments of inertia are small against $m r^2 = 1$,
+    as a satellite's are (at $J \sim 0.1$ the gradient's force is a third of
+    gravity's and the orbit falls in). Conserved: the energy and the total angular
+    momentum $x \times p_x + R\Pi$; the attitude stays on SO(3)."""
+    lagrangian = SatelliteLagrangian(
+        jnp.asarray(1.0), jnp.asarray(inertia, float), jnp.asarray(1.0)
+    )
+    x0, p0 = jnp.array([1.0, 0.0, 0.0]), jnp.array([0.0, 1.0, 0.0])
+    pi0 = jnp.array([inertia[0] * spin, 0.0, 0.0])
+    c, s = jnp.cos(0.4), jnp.sin(0.4)
+    R0 = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return Scene(
+        name="satellite",
+        lagrangian=lagrangian,
+        y0=((x0, R0), (p0, pi0)),
+        period=2 * float(jnp.pi),
+        invariants=dict(
+            angular_momentum=total_angular_momentum,
+            orthogonality=lambda t, y, args: orthogonality(t, (y[0][1], y[1][1]), args),
         ),
     )
 
