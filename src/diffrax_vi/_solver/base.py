@@ -114,8 +114,9 @@ def advance(
 ) -> tuple[PyTree, PyTree | None]:
     r"""`y0 = (q0, p0)` moved by the step's increments `(dq, dp)`: the position
     through its configuration space, $q_0 \oplus dq$, and every sum compensated.
-    On a group the position is a product of group elements, not a sum, so its
-    compensation stays zero."""
+    In a space with a group factor the position is not a sum: it moves without
+    compensation, a product's vector factor included (its compensation stays
+    zero); the momentum's sum is compensated."""
     if is_euclidean(space):
         return compensated_add(y0, increment, compensation)
     (q0, p0), (dq, dp) = y0, increment
