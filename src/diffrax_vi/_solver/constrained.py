@@ -35,8 +35,9 @@ from .._constraint import (
 )
 from .._custom_types import P, Q
 from .._nonlinear import AbstractVIRootFinder
+from .._space import retract
 from .base import MethodStep, StepInputs
-from .implicit import check_start, solve_step, Unknowns
+from .unknowns import check_start, solve_step, Unknowns
 
 
 def _add(a: PyTree, b: PyTree) -> PyTree:
@@ -84,6 +85,9 @@ def constrained_step(
         step.q0,
         step.args,
     )
+    # The end position is the space's; the constraint's Jacobian is taken in the
+    # coordinates of q, so `LagrangianTerm` admits constraints in vector spaces only.
+    space = step.term.lagrangian.space
     push = transpose_product(g, t0, q0, args)
     jacobian0 = constraint_jacobian(g, t0, q0, args)
 
@@ -95,7 +99,7 @@ def constrained_step(
         moved = shifted(lam)
         r, s = residual_at(moved, w)
         dq, _ = increments_at(moved, w)
-        q1 = _add(q0, dq)
+        q1 = retract(space, q0, dq)
         return (r, constraint_values(g, t1, q1, args)), (
             s,
             constraint_scale(jacobian0, q1),
@@ -122,7 +126,7 @@ def constrained_step(
         if work_at is None
         else (lambda unknowns: work_at(shifted(unknowns[1]), unknowns[0])),
     )
-    q1 = _add(q0, out.dq)
+    q1 = retract(space, q0, out.dq)
     projected = project_momentum(step.term, t1, q1, _add(step.p0, out.dp), args)
     result = dfx.RESULTS.where(
         out.result == dfx.RESULTS.successful, projected.result, out.result

@@ -34,7 +34,7 @@ from .base import (
     StepInputs,
     VIState,
 )
-from .implicit import check_start, start_result
+from .unknowns import check_start, start_result
 
 
 SYMMETRIC_NEGATIVE = frozenset({lx.symmetric_tag, lx.negative_semidefinite_tag})

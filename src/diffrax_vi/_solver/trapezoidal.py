@@ -23,9 +23,10 @@ from .base import (
     StepInputs,
 )
 from .constrained import constrained_step, init_constrained
-from .implicit import IMPLICIT_ARGS_DOC, init_unknowns, solve_step, Unknowns
+from .implicit import IMPLICIT_ARGS_DOC
 from .rule import rule_increments, rule_residual, rule_work
 from .stormer_verlet import kick_drift_kick, poisoned_force
+from .unknowns import init_unknowns, solve_step, Unknowns
 
 
 _RULE = TrapezoidalRule()
