@@ -9,6 +9,9 @@
 - on Kepler, a composition over the sum of its substeps (Stormer-Verlet steps in
   diffeqsolve; target <= 1.3x), and MidpointVI over a bare fixed-point implicit
   midpoint in a `lax.scan` iterated to 1e-13 (target <= 1.5x), checked to agree;
+- on the double pendulum (a general Lagrangian, whose implicit steps take Newton
+  iterations with a dense Jacobian), MidpointVI, TrapezoidalVI and GaussVPRK(2)
+  against Tsit5 on the same term;
 - on Kepler, Tsit5 and Dopri8 on a `LagrangianTerm` over the same solver on a
   hand-written `ODETerm` of Hamilton's equations (target <= 1.2x at either XLA
   setting): the handicap a Runge-Kutta method would carry into every study.
@@ -252,6 +255,44 @@ def small_system(lagrangian, y0, h, n, repeats):
         )
 
 
+def general_lagrangian(repeats):
+    """The double pendulum (a general Lagrangian: Newton with a dense Jacobian at
+    each step) under the implicit solvers and Tsit5."""
+    scene = dvi.scenes.double_pendulum()
+    term, n, h = scene.term(), 20_000, scene.period / 100
+
+    def solve(solver):
+        @jax.jit
+        def f(y0):
+            sol = dfx.diffeqsolve(
+                term,
+                solver,
+                0.0,
+                h * n,
+                h,
+                y0,
+                saveat=dfx.SaveAt(t1=True),
+                max_steps=n,
+            )
+            return sol.ys
+
+        return f
+
+    us = lambda solver: 1e6 * best_time(solve(solver), scene.y0, repeats=repeats) / n
+    t_tsit = us(dfx.Tsit5())
+    print(
+        f"\nDouble pendulum (general Lagrangian, dense Newton): {n} steps, us per step"
+    )
+    for name, solver in (
+        ("MidpointVI", dvi.MidpointVI()),
+        ("TrapezoidalVI", dvi.TrapezoidalVI()),
+        ("GaussVPRK(2)", dvi.GaussVPRK(2)),
+    ):
+        t = us(solver)
+        print(f"  {name:14s} {t:9.3f} us = {t / t_tsit:5.2f}x Tsit5 on the same term")
+    print(f"  {'Tsit5':14s} {t_tsit:9.3f} us")
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
@@ -270,6 +311,7 @@ def main():
         chain_y0 = (jnp.sin(jnp.linspace(0, jnp.pi, n)), jnp.zeros(n))
         # MidpointVI's dense Newton matrix is too costly to time at 4096 DOF.
         run(f"Chain ({n} DOF)", Chain(), chain_y0, 0.02, steps, args.repeats, implicit)
+    general_lagrangian(args.repeats)
 
 
 if __name__ == "__main__":

@@ -168,6 +168,27 @@ def _pivot_ratio(lu: Array) -> Scalar:
     return jnp.min(pivots) / jnp.max(pivots)
 
 
+def unrolled_lu_solve(matrix: Array, b: Array) -> tuple[Array, Scalar]:
+    """`matrix^-1 b` by Gaussian elimination with partial pivoting, unrolled into
+    XLA operations, and the ratio of the smallest to the largest pivot.
+
+    For Newton's dense solves (at most `NEWTON_DENSE_MAX` unknowns) in place of
+    `lineax.LU`, whose LAPACK call keeps XLA on CPU from compiling the surrounding
+    loop whole: the trapezoidal step of the free rigid body (3 unknowns) costs
+    about 30 us with it and a few without (`benchmarks/lie_groups.py`)."""
+    n = b.shape[0]
+    a = jnp.concatenate([matrix, b[:, None]], axis=1)
+    for k in range(n):
+        i = k + jnp.argmax(jnp.abs(a[k:, k]))
+        row_k, row_i = a[k], a[i]
+        a = a.at[k].set(row_i).at[i].set(row_k)
+        a = a.at[k + 1 :].add(-(a[k + 1 :, k] / a[k, k])[:, None] * a[k][None, :])
+    x = jnp.zeros_like(b)
+    for k in reversed(range(n)):
+        x = x.at[k].set((a[k, n] - a[k, :n] @ x) / a[k, k])
+    return x, _pivot_ratio(a[:, :n])
+
+
 def _max_abs(tree: PyTree) -> Scalar:
     size = jnp.max(jnp.stack([jnp.max(jnp.abs(x)) for x in jtu.tree_leaves(tree)]))
     return lax.stop_gradient(jnp.where(size > 0, size, 1))
@@ -310,10 +331,12 @@ class Newton(AbstractVIRootFinder):
                 sol = lx.linear_solve(operator, f, self.linear_solver, throw=False)
                 delta, result = sol.value, optx.RESULTS.promote(sol.result)
             elif self.dense(y):
-                lu_state = lx.LU().init(operator, {})
-                pivot_ratio = _pivot_ratio(lu_state[0][0])
-                sol = lx.linear_solve(operator, f, lx.LU(), state=lu_state, throw=False)
-                delta, result = sol.value, optx.RESULTS.promote(sol.result)
+                flat_f, unravel = jax.flatten_util.ravel_pytree(f)
+                flat_delta, pivot_ratio = unrolled_lu_solve(
+                    operator.as_matrix(), flat_f
+                )
+                delta = jax.flatten_util.ravel_pytree(y)[1](flat_delta)
+                result = optx.RESULTS.successful
             else:
                 # Eisenstat-Walker choice 2 (gamma = 0.9, alpha = 2), never asking for
                 # a residual below `64 eps` of the terms, which round-off would not
