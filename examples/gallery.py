@@ -86,6 +86,15 @@ STUDIES = {
     # Tsit5 at this step drifts off the loop into a singular configuration, where
     # the index-reduced vector field raises (docs/forces-constraints.md).
     "four_bar": (["MidpointVI", "Dopri8"], 200, 50, None),
+    "free_rigid_body": (
+        ["MidpointVI", "TrapezoidalVI", "MidpointVI-Yoshida4", "Tsit5", "Dopri8+PID"],
+        200,
+        50,
+        None,
+    ),
+    "heavy_top": (["TrapezoidalVI", "MidpointVI", "Tsit5"], 200, 50, None),
+    "pendulum_3d": (["TrapezoidalVI", "MidpointVI", "Tsit5", "Dopri8"], 100, 100, 16),
+    "satellite": (["MidpointVI", "TrapezoidalVI", "Tsit5"], 20, 200, None),
 }
 
 

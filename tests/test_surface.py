@@ -60,6 +60,7 @@ SLOW_SCENES = (
     "bead_wire",
     "free_rigid_body",
     "heavy_top",
+    "pendulum_3d",
     "satellite",
 )
 

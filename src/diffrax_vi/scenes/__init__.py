@@ -39,6 +39,7 @@ from ._one_dof import (
 from ._rigid import (
     free_rigid_body as free_rigid_body,
     heavy_top as heavy_top,
+    pendulum_3d as pendulum_3d,
     RigidBodyLagrangian as RigidBodyLagrangian,
     satellite as satellite,
     SatelliteLagrangian as SatelliteLagrangian,
@@ -71,6 +72,7 @@ SCENES = {
     "four_bar": four_bar,
     "free_rigid_body": free_rigid_body,
     "heavy_top": heavy_top,
+    "pendulum_3d": pendulum_3d,
     "satellite": satellite,
 }
 # The scenes with a step-size monitor (`Scene.monitor`), for `+Adaptive` methods.

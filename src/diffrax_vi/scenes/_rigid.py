@@ -92,8 +92,46 @@ def heavy_top(
         y0=(R0, pi0),
         period=2 * float(jnp.pi) / spin,
         invariants=dict(
-            vertical_momentum=lambda t, y, args: (y[0] @ y[1])[2],
+            vertical_momentum=vertical_momentum,
             spin=lambda t, y, args: y[1][2],
+            orthogonality=orthogonality,
+        ),
+    )
+
+
+def vertical_momentum(t, y, args) -> Array:
+    r"""$e_3\cdot R\Pi$, the spatial angular momentum about the vertical: conserved
+    when gravity is the only force, as rotations about the vertical are a symmetry."""
+    return (y[0] @ y[1])[2]
+
+
+def pendulum_3d(
+    inertia: tuple[float, float, float] = (1.0, 2.0, 2.5),
+    centre: tuple[float, float, float] = (0.3, 0.2, -1.0),
+    weight: float = 1.0,
+    omega: tuple[float, float, float] = (1.0, 0.5, 2.0),
+) -> Scene:
+    r"""The 3D pendulum of Lee, Leok & McClamroch (2005): an asymmetric rigid body on
+    a fixed frictionless pivot, its centre of mass $\chi$ off every principal axis,
+    under the weight $m g$. `inertia` are the principal moments about the pivot.
+    Starts at $R_0 = I$, hanging with $\chi$ tilted from the vertical, with body
+    angular velocity $\Omega_0$ = `omega`; its motion is chaotic. The parameters are
+    this package's choice, not the paper's. Conserved: the energy and the vertical
+    spatial angular momentum $e_3\cdot R\Pi$; the attitude stays on SO(3). The
+    period is that of small swings about the first principal axis,
+    $2\pi\sqrt{J_1/(m g|\chi|)}$."""
+    lagrangian = RigidBodyLagrangian(
+        jnp.asarray(inertia, float), jnp.asarray(centre, float), jnp.asarray(weight)
+    )
+    pi0 = lagrangian.inertia * jnp.asarray(omega, float)
+    arm = float(jnp.linalg.norm(lagrangian.centre))
+    return Scene(
+        name="pendulum_3d",
+        lagrangian=lagrangian,
+        y0=(jnp.eye(3), pi0),
+        period=2 * float(jnp.pi) * (inertia[0] / (weight * arm)) ** 0.5,
+        invariants=dict(
+            vertical_momentum=vertical_momentum,
             orthogonality=orthogonality,
         ),
     )

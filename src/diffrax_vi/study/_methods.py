@@ -29,6 +29,9 @@ SOLVERS = {
     "Yoshida4": lambda: Composition(StormerVerlet(), "yoshida4"),
     "KahanLi6": lambda: Composition(StormerVerlet(), "kahan_li6"),
     "KahanLi8": lambda: Composition(StormerVerlet(), "kahan_li8"),
+    # Compositions of the midpoint step: general Lagrangians, constraints, groups.
+    "MidpointVI-Yoshida4": lambda: Composition(MidpointVI(), "yoshida4"),
+    "MidpointVI-KahanLi8": lambda: Composition(MidpointVI(), "kahan_li8"),
     "LinearizedVI": lambda: LinearizedVI(velocity="centered"),
     "SemiImplicitEuler": dfx.SemiImplicitEuler,
     "Tsit5": dfx.Tsit5,
