@@ -29,7 +29,7 @@ from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
 from ._force import applied_force, power
 from ._lagrangian import AbstractLagrangian, lagrangian_value, momentum_offset
 from ._nonlinear import solve
-from ._space import is_euclidean, pull, retract, tangent, transport
+from ._space import is_euclidean, pull, retract, tangent, tangent_line, transport
 
 
 class AbstractDiscreteLagrangian(eqx.Module):
@@ -172,7 +172,7 @@ def average_grads(rule, lagrangian, t0, h, q0, v, args) -> tuple[P, P]:
         return jax.grad(rule.average, argnums=(3, 4))(lagrangian, t0, h, q0, v, args)
     return jax.grad(
         lambda eta, v: rule.average(
-            lagrangian, t0, h, retract(space, q0, eta), v, args
+            lagrangian, t0, h, tangent_line(space, q0, eta), v, args
         ),
         argnums=(0, 1),
     )(tangent(space, q0), v)
