@@ -20,8 +20,9 @@ REBOUND's IAS15.
    kahan_li8: wall time and the largest relative energy error over the run.
 
 Writes `adaptive_<problem>.png` and `adaptive.csv` into `--out` (default
-`benchmarks/results`). Run: `python benchmarks/adaptive.py [--quick]` (about ten
-minutes; `--quick`: 10^2 orbits and smaller grids).
+`benchmarks/results`). The small-loop threshold is raised as the command line
+raises it (`--xla-default` keeps XLA's). Run: `python benchmarks/adaptive.py
+[--quick]` (about ten minutes; `--quick`: 10^2 orbits and smaller grids).
 """
 
 import argparse
@@ -43,6 +44,7 @@ from diffrax_vi import scenes  # noqa: E402
 from diffrax_vi.scenes import _solar  # noqa: E402
 from diffrax_vi.study import drift, work_precision, WorkPrecision  # noqa: E402
 from diffrax_vi.study._plot import plot_work_precision  # noqa: E402
+from step_cost import add_xla_option, apply_xla_option  # noqa: E402
 
 
 # Problem -> (scene, horizon in periods, {method: steps-per-period grid}, RK rtols,
@@ -363,7 +365,9 @@ def main():
     parser.add_argument("--skip-growth", action="store_true")
     parser.add_argument("--skip-solar", action="store_true")
     parser.add_argument("--skip-logh", action="store_true")
+    add_xla_option(parser)
     args = parser.parse_args()
+    print(apply_xla_option(args), flush=True)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []

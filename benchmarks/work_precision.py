@@ -9,6 +9,9 @@ solution (Kepler's equation); Henon-Heiles is chaotic at this energy, so its glo
 error is against Dopri8 at rtol = atol = 1e-13 and means little past 10^2 periods
 (reported as NaN there).
 
+As the `diffrax-vi` command does, the script first calls
+`diffrax_vi.compile_small_loops_whole()`; `--xla-default` keeps XLA's default.
+
 Run: `python benchmarks/work_precision.py [--quick] [--scenes kepler] [--horizons 100]`
 (minutes to tens of minutes).
 """
@@ -29,6 +32,7 @@ from diffrax_vi.study import (  # noqa: E402
     WorkPrecision,
 )
 from diffrax_vi.study._plot import plot_work_precision  # noqa: E402
+from step_cost import add_xla_option, apply_xla_option  # noqa: E402
 
 
 FIXED = {
@@ -53,7 +57,9 @@ def main():
     parser.add_argument("--quick", action="store_true", help="a small grid")
     parser.add_argument("--horizons", default="100,10000")
     parser.add_argument("--scenes", default="kepler,henon_heiles")
+    add_xla_option(parser)
     args = parser.parse_args()
+    print(apply_xla_option(args), flush=True)
     out = pathlib.Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
