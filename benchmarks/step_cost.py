@@ -12,6 +12,8 @@
 - on the double pendulum (a general Lagrangian, whose implicit steps take Newton
   iterations with a dense Jacobian), MidpointVI, TrapezoidalVI and GaussVPRK(2)
   against Tsit5 on the same term;
+- on the Cartesian pendulum, TrapezoidalVI (RATTLE) and MidpointVI with the
+  constraint over the same Lagrangian without it (target <= 3x);
 - on Kepler, Tsit5 and Dopri8 on a `LagrangianTerm` over the same solver on a
   hand-written `ODETerm` of Hamilton's equations (target <= 1.2x at either XLA
   setting): the handicap a Runge-Kutta method would carry into every study.
@@ -293,6 +295,44 @@ def general_lagrangian(repeats):
     print(f"  {'Tsit5':14s} {t_tsit:9.3f} us")
 
 
+def constrained(repeats):
+    """The Cartesian pendulum (a separable Lagrangian in the plane, one holonomic
+    constraint) against the same Lagrangian without the constraint, per step."""
+    scene = dvi.scenes.cartesian_pendulum()
+    n, h = 20_000, scene.period / 100
+    free = dvi.LagrangianTerm(scene.lagrangian)
+
+    def per_step(term, solver):
+        @jax.jit
+        def f(y0):
+            sol = dfx.diffeqsolve(
+                term,
+                solver,
+                0.0,
+                h * n,
+                h,
+                y0,
+                saveat=dfx.SaveAt(t1=True),
+                max_steps=n,
+            )
+            return sol.ys
+
+        return 1e6 * best_time(f, scene.y0, repeats=repeats) / n
+
+    print(
+        f"\nCartesian pendulum, constrained over unconstrained: {n} steps, us per step"
+    )
+    for name, solver in (
+        ("TrapezoidalVI", dvi.TrapezoidalVI()),
+        ("MidpointVI", dvi.MidpointVI()),
+    ):
+        t_c, t_f = per_step(scene.term(), solver), per_step(free, solver)
+        print(
+            f"  {name:14s} {t_c:9.3f} us = {t_c / t_f:5.2f}x unconstrained "
+            f"({t_f:.3f} us; target <= 3)"
+        )
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=5)
@@ -312,6 +352,7 @@ def main():
         # MidpointVI's dense Newton matrix is too costly to time at 4096 DOF.
         run(f"Chain ({n} DOF)", Chain(), chain_y0, 0.02, steps, args.repeats, implicit)
     general_lagrangian(args.repeats)
+    constrained(args.repeats)
 
 
 if __name__ == "__main__":
