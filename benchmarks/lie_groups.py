@@ -36,7 +36,12 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import diffrax_vi as dvi  # noqa: E402
-from step_cost import add_xla_option, apply_xla_option, best_time  # noqa: E402
+from step_cost import (  # noqa: E402
+    add_xla_option,
+    apply_xla_option,
+    best_time,
+    final_state,
+)
 
 
 def exp(x):
@@ -96,17 +101,6 @@ def bare_trapezoidal(scene, h, n):
         R0, pi0 = y0
         (R, pi, _), _ = jax.lax.scan(update, (R0, pi0, pi0 / J), None, length=n)
         return R, pi
-
-    return run
-
-
-def solve(term, solver, h, n):
-    @jax.jit
-    def run(y0):
-        sol = dfx.diffeqsolve(
-            term, solver, 0.0, h * n, h, y0, saveat=dfx.SaveAt(t1=True), max_steps=n
-        )
-        return jax.tree.map(lambda x: x[-1], sol.ys)
 
     return run
 
@@ -185,7 +179,7 @@ def equal_error(scene, repeats):
         else:
             cost = (
                 best_time(
-                    solve(scene.term(), solver, 0.1, n), scene.y0, repeats=repeats
+                    final_state(scene.term(), solver, 0.1, n), scene.y0, repeats=repeats
                 )
                 / n
             )
@@ -271,17 +265,19 @@ def main():
         f"(best of {args.repeats})"
     )
     bare = bare_trapezoidal(scene, h, n)
-    trapezoidal = solve(term, dvi.TrapezoidalVI(), h, n)
+    trapezoidal = final_state(term, dvi.TrapezoidalVI(), h, n)
     ours, theirs = trapezoidal(scene.y0), bare(scene.y0)
     gap = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(ours, theirs))
     assert gap < 1e-9, f"TrapezoidalVI and the bare update differ by {gap}"
     t_bare = us(best_time(bare, scene.y0, repeats=args.repeats))
     t_trap = us(best_time(trapezoidal, scene.y0, repeats=args.repeats))
     t_mid = us(
-        best_time(solve(term, dvi.MidpointVI(), h, n), scene.y0, repeats=args.repeats)
+        best_time(
+            final_state(term, dvi.MidpointVI(), h, n), scene.y0, repeats=args.repeats
+        )
     )
     t_tsit = us(
-        best_time(solve(term, dfx.Tsit5(), h, n), scene.y0, repeats=args.repeats)
+        best_time(final_state(term, dfx.Tsit5(), h, n), scene.y0, repeats=args.repeats)
     )
     print(f"  bare lax.scan, trapezoidal LGVI    {t_bare:9.3f} us")
     print(

@@ -257,30 +257,29 @@ def small_system(lagrangian, y0, h, n, repeats):
         )
 
 
+def final_state(term, solver, h, n):
+    """A jitted plain `diffeqsolve` of `n` steps of `h` from `y0`, saving only t1:
+    `y0 -> y(t1)`."""
+
+    @jax.jit
+    def f(y0):
+        sol = dfx.diffeqsolve(
+            term, solver, 0.0, h * n, h, y0, saveat=dfx.SaveAt(t1=True), max_steps=n
+        )
+        return jax.tree.map(lambda x: x[-1], sol.ys)
+
+    return f
+
+
 def general_lagrangian(repeats):
     """The double pendulum (a general Lagrangian: Newton with a dense Jacobian at
     each step) under the implicit solvers and Tsit5."""
     scene = dvi.scenes.double_pendulum()
     term, n, h = scene.term(), 20_000, scene.period / 100
 
-    def solve(solver):
-        @jax.jit
-        def f(y0):
-            sol = dfx.diffeqsolve(
-                term,
-                solver,
-                0.0,
-                h * n,
-                h,
-                y0,
-                saveat=dfx.SaveAt(t1=True),
-                max_steps=n,
-            )
-            return sol.ys
-
-        return f
-
-    us = lambda solver: 1e6 * best_time(solve(solver), scene.y0, repeats=repeats) / n
+    us = lambda solver: (
+        1e6 * best_time(final_state(term, solver, h, n), scene.y0, repeats=repeats) / n
+    )
     t_tsit = us(dfx.Tsit5())
     print(
         f"\nDouble pendulum (general Lagrangian, dense Newton): {n} steps, us per step"
@@ -303,21 +302,8 @@ def constrained(repeats):
     free = dvi.LagrangianTerm(scene.lagrangian)
 
     def per_step(term, solver):
-        @jax.jit
-        def f(y0):
-            sol = dfx.diffeqsolve(
-                term,
-                solver,
-                0.0,
-                h * n,
-                h,
-                y0,
-                saveat=dfx.SaveAt(t1=True),
-                max_steps=n,
-            )
-            return sol.ys
-
-        return 1e6 * best_time(f, scene.y0, repeats=repeats) / n
+        run = final_state(term, solver, h, n)
+        return 1e6 * best_time(run, scene.y0, repeats=repeats) / n
 
     print(
         f"\nCartesian pendulum, constrained over unconstrained: {n} steps, us per step"
