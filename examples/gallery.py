@@ -129,7 +129,9 @@ def main():
             if members
             else ""
         )
-        doc = inspect.getdoc(make).replace("\n", " ")
+        # Docstring links are relative to the API pages in docs/api/; this page is
+        # one level up.
+        doc = inspect.getdoc(make).replace("\n", " ").replace("](../", "](")
         figures = "\n\n".join(
             f"![{name} {k} error](images/gallery/{name}/drift_{k}.png)"
             for k in study.invariants

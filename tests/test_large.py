@@ -63,7 +63,7 @@ def test_bead_wire_matches_hand_derived_equations():
 def test_bead_wire_rejects_bad_parameters():
     with pytest.raises(ValueError, match="leaves its trough"):
         scenes.bead_wire(8, displacement=0.6)
-    with pytest.raises(ValueError, match="n >= 1"):
+    with pytest.raises(ValueError, match="at least 1"):
         scenes.bead_wire(0)
 
 

@@ -28,6 +28,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 from ._custom_types import Args, RealScalarLike
 from ._lagrangian import AbstractLagrangian, AbstractSeparableLagrangian
 from ._private_api import WrapTerm
+from ._solver.base import AbstractSymmetricSolver
 
 
 def _unwrap(terms: PyTree) -> PyTree:
@@ -73,6 +74,23 @@ class ReversibleState(eqx.Module):
     dt0: Float[Array, ""]
     ok: Bool[Array, ""]
     field: Callable
+
+
+def _check_symmetric(solver) -> None:
+    """A `ValueError` unless `solver` (the solver whose `func` diffrax handed the
+    controller, through wrappers that take its steps unchanged) is symmetric."""
+    while getattr(solver, "steps_as_wrapped", False):
+        solver = solver.solver
+    if isinstance(solver, dfx.AbstractSolver) and not isinstance(
+        solver, AbstractSymmetricSolver
+    ):
+        raise ValueError(
+            "ReversibleController keeps a solve time-reversible only with a "
+            f"symmetric solver, and {type(solver).__name__} is not one (a wrapper "
+            "such as diffrax.HalfSolver is not either). Use StormerVerlet, "
+            "MidpointVI, TrapezoidalVI, a symmetric VPRK or a Composition; for "
+            "other solvers, diffrax.PIDController."
+        )
 
 
 class ReversibleController(dfx.AbstractStepSizeController):
@@ -198,6 +216,7 @@ class ReversibleController(dfx.AbstractStepSizeController):
                 "the monitor sets the steps after it relative to this one. Pass "
                 "e.g. `dt0=period / 100`."
             )
+        _check_symmetric(getattr(func, "__self__", None))
         raw = _unwrap(terms)
         dtype = jnp.result_type(t0, dt0, float)
         t_phys = self._direction(dtype) * jnp.asarray(t0, dtype)
@@ -221,7 +240,14 @@ class ReversibleController(dfx.AbstractStepSizeController):
         state = eqx.tree_at(
             lambda s: (s.rate, s.ok),
             state,
-            (jnp.where(ok, rate, 0), ok & (density > 0) & jnp.isfinite(density)),
+            (
+                jnp.where(ok, rate, 0),
+                ok
+                & (density > 0)
+                & jnp.isfinite(density)
+                & (state.dt0 != 0)
+                & jnp.isfinite(state.dt0),
+            ),
         )
         h, _, ok = self._step(state)
         return self._clip(t0, t0 + h), eqx.tree_at(lambda s: s.ok, state, ok)

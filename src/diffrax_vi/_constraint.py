@@ -31,19 +31,30 @@ from ._nonlinear import Newton, newton_tolerance, scaled_norm, singular_threshol
 def constraint_values(
     constraint: Callable[..., PyTree], t: RealScalarLike, q: Q, args: Args
 ) -> Float[Array, " m"]:
-    """`g(t, q, args)` as a flat array, checked at trace time to be real floating."""
-    out = jnp.asarray(constraint(t, q, args))
-    if not jnp.issubdtype(out.dtype, jnp.floating):
-        raise ValueError(
-            f"The constraint must return real floating values g(t, q, args), got "
-            f"dtype {out.dtype}."
-        )
-    if out.size == 0:
+    """`g(t, q, args)` as a flat array (an array or any pytree of them, in the order
+    of its leaves), checked at trace time to be real floating in at least the
+    precision of the state."""
+    leaves = [jnp.asarray(x) for x in jtu.tree_leaves(constraint(t, q, args))]
+    if sum(x.size for x in leaves) == 0:
         raise ValueError(
             "The constraint returned no values: pass `constraint=None` for an "
             "unconstrained system."
         )
-    return jnp.ravel(out).astype(state_dtype(q))
+    dtype = state_dtype(q)
+    for x in leaves:
+        if not jnp.issubdtype(x.dtype, jnp.floating):
+            raise ValueError(
+                f"The constraint must return real floating values g(t, q, args), got "
+                f"dtype {x.dtype}."
+            )
+        if jnp.finfo(x.dtype).eps > jnp.finfo(dtype).eps:
+            raise ValueError(
+                f"The constraint returns {x.dtype} values in a {dtype} solve: their "
+                f"round-off ({jnp.finfo(x.dtype).eps:.0e}) is above the accuracy the "
+                "solve keeps g = 0 to, so no step could meet it. Compute the "
+                "constraint in the dtype of q (no float32 constants or casts)."
+            )
+    return jnp.concatenate([jnp.ravel(x).astype(dtype) for x in leaves])
 
 
 def constraint_jacobian(
@@ -209,6 +220,11 @@ OFF_MANIFOLD = (
     "`diffrax_vi.project_onto_constraints(term, t0, y0, args)[0]`."
 )
 
+NON_FINITE_CONSTRAINT = (
+    "The constraint g(t0, q0) or its Jacobian dg/dq is NaN or inf at a finite q0: "
+    "check the constraint function and its parameters in args."
+)
+
 RANK_DEFICIENT = (
     "The constraint Jacobian dg/dq at q0 does not have full row rank to working "
     "precision: the constraints are redundant (remove the dependent ones) or q0 is a "
@@ -224,12 +240,14 @@ def check_start(
     g = term.constraint
     jacobian = constraint_jacobian(g, t, q, args)
     values = constraint_values(g, t, q, args)
-    tol = newton_tolerance(state_dtype(q)) ** 0.5
+    tol = newton_tolerance(state_dtype(q))
     hidden = hidden_constraint(jacobian, v, constraint_rate(g, t, q, args))
     off = (scaled_norm(values, constraint_scale(jacobian, q)) > tol) | (
         scaled_norm(*hidden) > tol
     )
-    value = eqx.error_if(value, ~rank_ok(jacobian) & all_finite(q), RANK_DEFICIENT)
+    finite = all_finite((values, jacobian))
+    value = eqx.error_if(value, ~finite & all_finite(q), NON_FINITE_CONSTRAINT)
+    value = eqx.error_if(value, ~rank_ok(jacobian) & finite, RANK_DEFICIENT)
     return eqx.error_if(value, off & all_finite((q, p, v)), OFF_MANIFOLD)
 
 

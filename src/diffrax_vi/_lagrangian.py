@@ -5,6 +5,7 @@ from typing import ClassVar
 import diffrax as dfx
 import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
@@ -21,6 +22,7 @@ from ._nonlinear import (
     scaled_norm,
     singular_threshold,
     solve,
+    unrolled_lu_solve,
 )
 from ._private_api import unvmap_any
 from ._space import AbstractSpace, Euclidean, is_euclidean, left_gradient, tangent
@@ -532,26 +534,23 @@ def velocity(
     dtype = state_dtype(p)
     zeros = jtu.tree_map(jnp.zeros_like, p)
     if isinstance(lagrangian, AbstractQuadraticLagrangian) and n <= NEWTON_DENSE_MAX:
-        # `dL/dv` is affine in `v`: one solve with `M = d2L/dv2` from v = 0.
-        r0, linear = jax.linearize(lambda v: residual(v)[0], zeros)
-        operator = lx.FunctionLinearOperator(
-            linear, jax.eval_shape(lambda: zeros), tags=lx.symmetric_tag
-        )
-        lu_state = lx.LU().init(operator, {})
-        pivots = jnp.abs(jnp.diagonal(lu_state[0][0]))
-        regular = jnp.min(pivots) > singular_threshold(n, dtype) * jnp.max(pivots)
-        sol = lx.linear_solve(
-            operator,
-            jtu.tree_map(jnp.negative, r0),
-            lx.LU(),
-            state=lu_state,
-            throw=False,
-        )
+        # `dL/dv` is affine in `v`: one solve with `M = d2L/dv2` from v = 0, by
+        # unrolled elimination. Differentiated (RATTLE's projection differentiates
+        # the velocity), lineax's solve would check its tangent solve and raise on
+        # a NaN state, where this returns NaN for the step to report.
+        flat_zeros, unravel = jax.flatten_util.ravel_pytree(zeros)
+
+        def flat_residual(x):
+            return jax.flatten_util.ravel_pytree(residual(unravel(x))[0])[0]
+
+        r0 = flat_residual(flat_zeros)
+        x, ratio = unrolled_lu_solve(jax.jacfwd(flat_residual)(flat_zeros), -r0)
+        regular = ratio > singular_threshold(n, dtype)
         # The marker is a promise: if `L` is not quadratic in `v` after all, the one
         # solve is wrong, and the residual at its answer says so.
         v = eqx.error_if(
-            sol.value,
-            regular & (scaled_norm(*residual(sol.value)) > newton_tolerance(dtype)),
+            unravel(x),
+            regular & (scaled_norm(*residual(unravel(x))) > newton_tolerance(dtype)),
             NOT_QUADRATIC,
         )
         result = dfx.RESULTS.where(

@@ -90,6 +90,12 @@ def split_state(y: PyTree, name: str = "y0", space: PyTree = None) -> tuple[Q, P
             f"{jtu.tree_structure(y)}. To start from a velocity `v0`, use "
             "`(q0, diffrax_vi.momentum(lagrangian, t0, q0, v0, args))`."
         )
+    if any(jnp.iscomplexobj(x) for x in jtu.tree_leaves(y)):
+        raise ValueError(
+            f"`{name} = (q, p)` is complex, and a Lagrangian's positions and momenta "
+            "are real: write each complex coordinate as two real ones (its real and "
+            "imaginary parts)."
+        )
     q, p = y
     check_state(q, p, name, space)
     return q, p

@@ -97,6 +97,18 @@ def _subtract(a, b):
     return jtu.tree_map(lambda x, y: x - y, a, b)
 
 
+def check_fraction(owner: str, name: str, value) -> None:
+    """A `ValueError` unless `value` is `None`, traced, or a number in (0, 1): a
+    relative tolerance or a contraction rate."""
+    if value is None or isinstance(value, jax.core.Tracer):
+        return
+    if not (jnp.ndim(value) == 0 and 0 < float(value) < 1):
+        raise ValueError(
+            f"{owner}({name}=...) must be a number between 0 and 1 (exclusive); got "
+            f"{value!r}."
+        )
+
+
 class AbstractVIRootFinder(optx.AbstractRootFinder):
     """Base class of this package's root finders. The function given to
     `optimistix.root_find` must have `has_aux=True` and return `(r, s)`: the residual
@@ -112,6 +124,9 @@ class AbstractVIRootFinder(optx.AbstractRootFinder):
     # residual relative to the size of its terms, in the max norm.
     atol: ClassVar[float] = 0.0
     norm: ClassVar[Callable] = staticmethod(optx.max_norm)
+
+    def __check_init__(self):
+        check_fraction(type(self).__name__, "rtol", self.rtol)
 
     def tolerance(self, y: PyTree) -> float:
         return newton_tolerance(tree_dtype(y)) if self.rtol is None else self.rtol
@@ -438,6 +453,9 @@ class SimplifiedNewton(AbstractVIRootFinder):
     rtol: float | None = None
     kappa: float = 0.25
 
+    def __check_init__(self):
+        check_fraction("SimplifiedNewton", "kappa", self.kappa)
+
     def carry_init(self, y: PyTree) -> PyTree:
         n = tree_size(y)
         dtype = tree_dtype(y)
@@ -515,6 +533,9 @@ class FixedPoint(AbstractVIRootFinder):
 
     rtol: float | None = None
     max_rate: float = 0.5
+
+    def __check_init__(self):
+        check_fraction("FixedPoint", "max_rate", self.max_rate)
 
     def tolerance(self, y: PyTree) -> float:
         if self.rtol is not None:

@@ -8,15 +8,29 @@ inside a solve.
 
 import diffrax as dfx
 import equinox.internal as eqxi
-from diffrax._term import WrapTerm  # `diffeqsolve` hands solvers this, not our term.
+from diffrax._integrate import (  # `diffeqsolve`'s own check of terms against solver.
+    _assert_term_compatible as assert_term_compatible,
+)
+
+# An implicit solver whose tolerances are left to an adaptive controller.
+from diffrax._root_finder import (
+    use_stepsize_tol,
+)
+from diffrax._term import (  # What `diffeqsolve` hands solvers instead of our term.
+    AdjointTerm,  # BacksolveAdjoint's backward solve.
+    WrapTerm,  # Every solve.
+)
 from jax._src.xla_bridge import backends_are_initialized  # XLA_FLAGS are read then.
 from jaxtyping import ArrayLike, Bool
 
 
 __all__ = [
+    "AdjointTerm",
+    "assert_term_compatible",
     "backends_are_initialized",
     "NoForwardingSolverMeta",
     "unvmap_any",
+    "use_stepsize_tol",
     "WrapTerm",
 ]
 

@@ -21,6 +21,8 @@ import numpy as np
 from jaxtyping import Array, PyTree
 
 from ._custom_types import Args, RealScalarLike
+from ._misc import all_finite
+from ._private_api import assert_term_compatible, use_stepsize_tol
 
 
 class FixedStepSolution(eqx.Module):
@@ -31,6 +33,8 @@ class FixedStepSolution(eqx.Module):
     - `ys`: the states at `ts` (a leading axis of `n_save + 1`).
     - `solver_state`: the solver's state after the last step it took.
     - `result`: a `diffrax.RESULTS`; the first failure, if a step failed.
+        `RESULTS.nonfinite` where a solver that does not check its steps
+        (diffrax's Runge–Kutta solvers) left NaN or inf at a save time.
     - `t_reached`: the time the last successful step ended at (`t1` on success).
     - `num_steps`: the successful steps taken.
 
@@ -70,7 +74,52 @@ def _count_steps(t0, t1, dt0, dtype) -> int:
             f"t0 = {t0}, t1 = {t1}, dt0 = {dt0}. Use diffrax.diffeqsolve to integrate "
             "backwards."
         )
-    return int(np.ceil((t1 - t0) / np.nextafter(dt0, np.asarray(np.inf, dtype))))
+    n = np.ceil((t1 - t0) / np.nextafter(dt0, np.asarray(np.inf, dtype)))
+    if n > MAX_STEPS:
+        raise ValueError(
+            f"dt0 = {dt0} makes {n:.3g} steps from t0 = {t0} to t1 = {t1}, more than "
+            f"solve_fixed_steps counts ({MAX_STEPS}, the int32 step counter's "
+            "range). Take a larger dt0, or split the interval into several solves."
+        )
+    return int(n)
+
+
+# The most steps one solve counts: its step counter and `num_steps` are int32.
+MAX_STEPS = 2**31 - 1
+
+
+def _check_solver(terms, solver, t0, y0, args) -> None:
+    """What `diffrax.diffeqsolve` checks before it starts: the terms fit the solver,
+    and an implicit diffrax solver has the tolerances a fixed step needs."""
+    assert_term_compatible(
+        t0, y0, args, terms, solver.term_structure, solver.term_compatible_contr_kwargs
+    )
+    if isinstance(solver, dfx.AbstractImplicitSolver) and any(
+        getattr(solver.root_finder, name, None) is use_stepsize_tol
+        for name in ("rtol", "atol", "norm")
+    ):
+        raise ValueError(
+            f"{type(solver).__name__}'s root finder takes its tolerances from an "
+            "adaptive step size controller, and solve_fixed_steps has none. Set them: "
+            f"diffrax.{type(solver).__name__}(root_finder=diffrax.VeryChord(rtol=..., "
+            "atol=..., norm=optimistix.max_norm)), or use diffrax.diffeqsolve with "
+            "a PIDController."
+        )
+
+
+def _first_non_finite(ts, ys, reached, steps, result, per_interval):
+    """Where a solver that does not check its own steps (diffrax's Runge-Kutta
+    solvers at fixed steps) produced NaN or inf: `RESULTS.nonfinite`, with the time
+    reached and the steps taken cut back to the last save with a finite state."""
+    finite = jax.vmap(all_finite)(ys)
+    first_bad = jnp.argmin(finite)
+    bad = (result == dfx.RESULTS.successful) & ~finite[first_bad]
+    last_good = jnp.maximum(first_bad - 1, 0)
+    reached = jnp.where(bad, jnp.minimum(reached, ts[last_good]), reached)
+    kept = last_good.astype(steps.dtype) * per_interval
+    steps = jnp.where(bad, jnp.minimum(steps, kept), steps)
+    result = dfx.RESULTS.where(bad, dfx.RESULTS.nonfinite, result)
+    return reached, steps, result
 
 
 # Steps per iteration of the scan for a step without a loop of its own. Measured for
@@ -140,8 +189,10 @@ def solve_fixed_steps(
 
     **Raises:**
 
-    `ValueError` for times that are traced, not finite or backwards, or an
-    `n_save` that does not divide the number of steps.
+    `ValueError` for times that are traced, not finite or backwards, more than
+    2³¹ − 1 steps, an `n_save` that does not divide the number of steps, terms the
+    solver cannot take, or an implicit diffrax solver without its own tolerances
+    (as `diffrax.diffeqsolve` does).
     """
     # The time dtype diffeqsolve would use.
     dtype = jnp.result_type(t0, t1, dt0)
@@ -156,6 +207,7 @@ def solve_fixed_steps(
         raise ValueError(f"unroll must be a positive integer; got {unroll!r}.")
     per_interval = n // n_save
     t0, t1, dt0 = (jnp.asarray(x, dtype) for x in (t0, t1, dt0))
+    _check_solver(terms, solver, t0, y0, args)
     n_t = jnp.asarray(n, dtype)
     # diffeqsolve rounds a step end within 100 ulp of t1 to t1.
     t1_floor = t1
@@ -202,4 +254,7 @@ def solve_fixed_steps(
     )
     ts = jnp.concatenate([t0[None], ts])
     ys = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), y0, ys)
+    reached, steps, result = _first_non_finite(
+        ts, ys, reached, steps, result, per_interval
+    )
     return FixedStepSolution(ts, ys, state, result, reached, steps)

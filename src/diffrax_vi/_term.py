@@ -27,15 +27,21 @@ VF_ERRORS = (
     "The Lagrangian is degenerate at this state: d^2L/dv^2 is singular to working "
     "precision, so the velocity is not determined by the momentum. Make the kinetic "
     "energy positive definite in every velocity component (a zero mass, or a "
-    "velocity entering L linearly, is degenerate). With a constraint, this also "
-    "means that G (d2L/dv2)^-1 G^T is singular: the constraint Jacobian G = dg/dq "
-    "lost rank (redundant constraints, or a singular configuration).",
+    "velocity entering L linearly, is degenerate).",
     "Newton's method could not invert the Legendre map p = dL/dv at this state, "
     "though d^2L/dv^2 is regular there: the momentum may lie outside the map's range "
     "(|p| has no velocity, e.g. beyond the speed limit of a relativistic L). Check "
     "y0 and the step size.",
-    "The Lagrangian or its derivatives gave NaN or inf at a finite state: check its "
-    "parameters and args.",
+    "The Lagrangian, its derivatives or the applied force gave NaN or inf at a "
+    "finite state: check their parameters and args, and a force such as -c v/|v| "
+    "that is undefined at rest.",
+    "The constraint forces cannot be solved at this state: G (d2L/dv2)^-1 G^T is "
+    "singular, with G = dg/dq, or d2L/dv2 itself is. A Runge-Kutta solver "
+    "integrates the index-reduced equations, drifts off g = 0 and can reach a "
+    "singular configuration of the mechanism: take smaller steps or a tighter "
+    "rtol, or use MidpointVI or TrapezoidalVI, which keep g = 0 at every step. If "
+    "the start is singular, the constraints are redundant or q0 is a singular "
+    "configuration.",
 )
 
 
@@ -194,15 +200,11 @@ class LagrangianTerm(dfx.AbstractTerm):
         # A vector field cannot return a RESULTS: each cause raises its own message.
         index = jnp.where(
             result == dfx.RESULTS.singular,
-            0,
+            0 if self.constraint is None else 3,
             jnp.where(result == dfx.RESULTS.breakdown, 1, 2),
         )
-        return eqx.branched_error_if(
-            f,
-            (result != dfx.RESULTS.successful) & all_finite(y),
-            index,
-            VF_ERRORS,
-        )
+        failed = (result != dfx.RESULTS.successful) | ~all_finite(f)
+        return eqx.branched_error_if(f, failed & all_finite(y), index, VF_ERRORS)
 
     def contr(self, t0: RealScalarLike, t1: RealScalarLike, **kwargs) -> RealScalarLike:
         return t1 - t0

@@ -73,6 +73,30 @@ RTOL = _number(float, "a tolerance", 0.0, 1.0)
 SPREAD = _number(float, "a spread", 0.0, strict=False)
 
 
+def _parameter_value(text: str, value: str, default):
+    """`value` read as the type of the parameter's default: an integer for a count or
+    a seed (a float would make a shape), comma-separated numbers for a tuple (the
+    moments of inertia), else a float."""
+    parts = value.split(",")
+    kind = int if isinstance(default, int) and not isinstance(default, bool) else float
+    try:
+        numbers = tuple(kind(x) for x in parts)
+    except ValueError:
+        what = "an integer" if kind is int else "a number"
+        raise UsageError(f"--param {text!r}: {value!r} is not {what}.") from None
+    if not all(math.isfinite(x) for x in numbers):
+        raise UsageError(f"--param {text!r}: the value must be finite.")
+    if isinstance(default, tuple):
+        if len(numbers) != len(default):
+            raise UsageError(
+                f"--param {text!r}: expected {len(default)} comma-separated numbers."
+            )
+        return numbers
+    if len(numbers) != 1:
+        raise UsageError(f"--param {text!r}: expected one number.")
+    return numbers[0]
+
+
 def _scene(name: str, params: list[str] | None = None):
     """The scene `name` made with `--param NAME=VALUE` keyword arguments."""
     import inspect
@@ -82,7 +106,7 @@ def _scene(name: str, params: list[str] | None = None):
     if name not in SCENES:
         raise UsageError(f"unknown scene {name!r}. Choose from: {', '.join(SCENES)}.")
     make = SCENES[name]
-    known = list(inspect.signature(make).parameters)
+    known = inspect.signature(make).parameters
     kwargs = {}
     for text in params or []:
         key, sep, value = text.partition("=")
@@ -93,10 +117,7 @@ def _scene(name: str, params: list[str] | None = None):
                 f"--param {text!r}: expected NAME=VALUE with NAME a parameter of "
                 f"the scene {name!r} ({takes})."
             )
-        try:
-            kwargs[key] = float(value)
-        except ValueError:
-            raise UsageError(f"--param {text!r}: {value!r} is not a number.") from None
+        kwargs[key] = _parameter_value(text, value, known[key].default)
     try:
         return make(**kwargs)
     except ValueError as e:

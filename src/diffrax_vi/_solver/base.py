@@ -23,7 +23,7 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 from .._custom_types import Args, P, Q, RealScalarLike, V
 from .._lagrangian import momentum_offset
 from .._misc import split_state, state_dtype, sum_is_finite
-from .._private_api import NoForwardingSolverMeta, WrapTerm
+from .._private_api import AdjointTerm, NoForwardingSolverMeta, WrapTerm
 from .._space import is_euclidean, retract, velocity
 from .._term import LagrangianTerm
 
@@ -134,6 +134,14 @@ def unwrap_term(terms: dfx.AbstractTerm, solver: str) -> tuple[LagrangianTerm, A
     if isinstance(terms, WrapTerm):
         direction = jnp.asarray(terms.direction)
         terms = terms.term
+    if isinstance(terms, AdjointTerm):
+        raise ValueError(
+            f"diffrax.BacksolveAdjoint solves an adjoint ODE backwards with the "
+            f"solver, and {solver} integrates a Lagrangian, not an ODE: this "
+            "package's solvers do not support it. Differentiate with "
+            "adjoint=diffrax.RecursiveCheckpointAdjoint() (the default) or "
+            "diffrax.DirectAdjoint()."
+        )
     if not isinstance(terms, LagrangianTerm):
         raise ValueError(
             f"{solver} integrates a Lagrangian and needs a "
@@ -213,6 +221,13 @@ def step_inputs(
     )
 
 
+def without_force(step: StepInputs) -> StepInputs:
+    """The same step with the term's applied force removed."""
+    if step.term.force is None:
+        return step
+    return eqx.tree_at(lambda s: s.term.force, step, None)
+
+
 class MethodStep(eqx.Module):
     """What a method's step produces: the increments of the state, a velocity of the
     step (the guess for the Legendre inversions of the dense output), the method's new
@@ -290,6 +305,14 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
 
     compensated: AbstractVar[bool]
 
+    def __check_init__(self):
+        steps = getattr(self, "root_find_max_steps", 1)
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+            raise ValueError(
+                f"{type(self).__name__}(root_find_max_steps=...) must be an integer "
+                f"of at least 1; got {steps!r}."
+            )
+
     @abc.abstractmethod
     def method_init(self, step: StepInputs) -> PyTree:
         """The method's state before its first step (a history, a Newton guess)."""
@@ -306,7 +329,7 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         terms: dfx.AbstractTerm,
         t0: RealScalarLike,
         t1: RealScalarLike,
-        y0: tuple[PyTree, PyTree],
+        y0: PyTree,
         args: Args,
     ) -> VIState:
         compensation = initial_compensation(y0, self.compensated)
@@ -328,7 +351,7 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         terms: dfx.AbstractTerm,
         t0: RealScalarLike,
         t1: RealScalarLike,
-        y0: tuple[PyTree, PyTree],
+        y0: PyTree,
         args: Args,
         solver_state: VIState,
         made_jump: bool | Bool[ArrayLike, ""],
@@ -342,7 +365,7 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         terms: dfx.AbstractTerm,
         t0: RealScalarLike,
         t1: RealScalarLike,
-        y0: tuple[PyTree, PyTree],
+        y0: PyTree,
         args: Args,
         solver_state: VIState,
         made_jump: bool | Bool[ArrayLike, ""],

@@ -121,7 +121,7 @@ def constrained_step(
         None,
         frozenset(),
         # The joint Jacobian of a saddle-point system is indefinite: no curvature test.
-        False,
+        None,
         None
         if work_at is None
         else (lambda unknowns: work_at(shifted(unknowns[1]), unknowns[0])),

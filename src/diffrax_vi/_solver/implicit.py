@@ -21,6 +21,7 @@ from .base import (
     AbstractVariationalSolver,
     MethodStep,
     StepInputs,
+    without_force,
 )
 from .constrained import constrained_step, init_constrained
 from .unknowns import init_unknowns, solve_step, Unknowns
@@ -111,7 +112,9 @@ class AbstractImplicitVI(
             self.root_find_max_steps,
             self.inverse_mass(step),
             self.jacobian_tags(step),
-            self.one_stage,
+            (lambda w: self.stage_residual(without_force(step), w))
+            if self.one_stage
+            else None,
             None if step.term.force is None else (lambda w: self.stage_work(step, w)),
         )
 

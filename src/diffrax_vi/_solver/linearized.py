@@ -64,6 +64,10 @@ def _scale(c, a):
     return jtu.tree_map(lambda x: c * x, a)
 
 
+# The relative change of step size above which the past is rebuilt.
+STEP_CHANGE = 1e-3
+
+
 class LinearizedVI(AbstractVariationalSolver):
     r"""The linearized variational integrator of Hirani (2000): one linear solve per
     step, no Newton iteration, for any Lagrangian.
@@ -90,7 +94,10 @@ class LinearizedVI(AbstractVariationalSolver):
     triples drift off $S$ (measure it with
     [`diffrax_vi.diagnostics.del_residuals`][]), and the linearized
     method is not more accurate than the variational integrator it linearizes.
-    Fixed step sizes only. Cubic Hermite interpolation for dense output.
+    Made for fixed step sizes: a step whose size differs from the last one (by more
+    than 0.1%) rebuilds the past at the new size first, as a jump does, so variable
+    steps (`diffrax.StepTo`) stay on $S$ at the cost of those backward steps. Cubic
+    Hermite interpolation for dense output.
 
     ??? cite "Reference"
 
@@ -220,8 +227,16 @@ class LinearizedVI(AbstractVariationalSolver):
         self, step: StepInputs, state: History, made_jump: Bool[ArrayLike, ""]
     ) -> MethodStep:
         lagrangian = step.term.lagrangian
+        # A new step size re-anchors the past on the DEL manifold of the new step,
+        # as a jump does: linearized about a triple of other step sizes, the method
+        # leaves S (alternating steps diverged at every resolution). Below a relative
+        # change of STEP_CHANGE the step is the same one, rounded (diffrax's fixed
+        # steps differ by ulps of t).
+        changed = jnp.abs(step.h - state.steps[0]) > STEP_CHANGE * jnp.abs(step.h)
         history = lax.cond(
-            unvmap_any(made_jump), lambda: self.method_init(step), lambda: state
+            unvmap_any(made_jump | changed),
+            lambda: self.method_init(step),
+            lambda: state,
         )
         qs, hs = history.positions, history.steps
         q0, h, tp0 = step.q0, step.h, step.t0

@@ -21,6 +21,7 @@ from .base import (
     AbstractVariationalSolver,
     MethodStep,
     StepInputs,
+    without_force,
 )
 from .constrained import constrained_step, init_constrained
 from .implicit import IMPLICIT_ARGS_DOC
@@ -150,7 +151,8 @@ class TrapezoidalVI(
             self.root_find_max_steps,
             None,
             frozenset(),
-            True,  # one velocity: the curvature of the discrete action tests the root
+            # One velocity: the curvature of the discrete action tests the root.
+            lambda v: _residual(without_force(step), v),
             None if step.term.force is None else (lambda v: _work(step, v)),
         )
 

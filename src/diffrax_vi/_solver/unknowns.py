@@ -126,13 +126,21 @@ def solve_step(
     max_steps: int,
     inverse_mass: PyTree | None,
     tags: frozenset,
-    one_stage: bool,
+    fold_residual,
     work=None,
 ) -> MethodStep:
     """One implicit step: solve `residual(w) = 0` (with `residual` returning the
     residual and the size of its terms) from the extrapolated guess, check the root,
     and take the step's `increments(w)` (and, given `work`, the work `work(w)` of
     its discrete forces).
+
+    `fold_residual`, where the unknowns are one velocity, is the residual of the
+    same step without applied forces, whose Jacobian is the Hessian of the discrete
+    action up to an antisymmetric part: its curvature along the Newton path tells a
+    root that continues the motion from one across a fold. A force has no action
+    (strong damping in a composition's backward substep makes the full Jacobian
+    indefinite at the one root of a linear step), so it is left out of the test.
+    `None` for stage equations with no such structure.
 
     `root_finder=None` chooses: for a separable Lagrangian (`inverse_mass` given),
     the fixed-point iteration, falling back to Newton's method from the same guess
@@ -185,13 +193,23 @@ def solve_step(
         checked = True
     unknowns = solved.value
     result = solved.result
-    if checked and one_stage:
+    # A NaN or inf applied force (or Lagrangian) at a finite start makes the
+    # iteration's first update non-finite: `nonfinite`, not a diverged iteration
+    # (whose iterates stay finite over its few steps).
+    result = dfx.RESULTS.where(
+        (result != dfx.RESULTS.successful)
+        & ~all_finite(unknowns)
+        & all_finite(guess),
+        dfx.RESULTS.nonfinite,
+        result,
+    )
+    if checked and fold_residual is not None:
         # The root must continue the motion: along the way from the guess the Newton
         # matrix keeps the positive curvature that d2L/dv2 has as h -> 0. A root
         # across a fold (the bound pendulum at h = 5 lands on an energy of 82) has
         # the opposite. The fixed-point iteration certifies this by converging.
         d = jtu.tree_map(lambda a, b: a - b, unknowns, guess)
-        spurious = state.positive & (_curvature(residual, unknowns, d) < 0)
+        spurious = state.positive & (_curvature(fold_residual, unknowns, d) < 0)
         result = dfx.RESULTS.where(
             (result == dfx.RESULTS.successful) & spurious,
             dfx.RESULTS.nonlinear_divergence,

@@ -45,6 +45,7 @@ from .._space import is_euclidean
 from .base import StepInputs
 from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC, SYMMETRIC_POSITIVE
 from .rule import rule_increments, rule_residual, rule_work
+from .trees import satisfied_order, TREE_ORDER_MAX
 
 
 _MIDPOINT = MidpointRule()
@@ -62,7 +63,9 @@ class VPRKTableau:
 
     Validated when built: $c = a\mathbf 1$, $\sum_i b_i = 1$, every $b_i \ne 0$ (the
     discrete Lagrangian $h\sum_i b_i L(Q_i, V_i)$ must see every stage), and the
-    symplecticity condition $b_i \bar a_{ij} + b_j a_{ji} = b_i b_j$. Two tableaus are
+    symplecticity condition $b_i \bar a_{ij} + b_j a_{ji} = b_i b_j$, and the claimed
+    `order`: every order condition (bicoloured trees) up to order 8, and the
+    quadrature conditions $\sum_i b_i c_i^{k-1} = 1/k$ above it. Two tableaus are
     equal when their coefficients are.
 
     !!! example
@@ -119,6 +122,22 @@ class VPRKTableau:
             raise ValueError(
                 "VPRK tableau is not symplectic: b_i abar_ij + b_j a_ji != b_i b_j "
                 f"(largest defect {np.max(np.abs(defect)):.1e})."
+            )
+        # Every order condition up to 8 (9498 trees at order 8, a tenth of a second
+        # once per tableau), and beyond it the quadrature conditions.
+        checked = min(self.order, TREE_ORDER_MAX)
+        met = satisfied_order(self.a, self.a_bar, self.b, checked)
+        quadrature = [
+            k
+            for k in range(checked + 1, self.order + 1)
+            if abs(self.b @ self.c ** (k - 1) - 1 / k) > 1e-10
+        ]
+        if met < checked or quadrature:
+            failed = met + 1 if met < checked else quadrature[0]
+            raise ValueError(
+                f"VPRK tableau claims order {self.order}, but its coefficients fail "
+                f"the order conditions of order {failed} (Hairer, Lubich & Wanner, "
+                f"III.2.1). Pass the order they reach, order={failed - 1}."
             )
 
     @property

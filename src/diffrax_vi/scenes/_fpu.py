@@ -5,7 +5,7 @@ from jaxtyping import Array, Float
 
 from .._lagrangian import AbstractSeparableLagrangian
 from ._one_dof import parameter
-from ._scene import Scene
+from ._scene import check_count, check_positive, Scene
 
 
 class FPULagrangian(AbstractSeparableLagrangian):
@@ -34,8 +34,8 @@ def fpu(omega: float = 50.0, m: int = 3) -> Scene:
     The time scale is the fast period $2\pi/\omega$, so `steps_per_period` sets how
     well a step resolves the stiff springs (a step is stable for explicit methods only
     while $\omega h < 2$)."""
-    if m < 1 or omega <= 0:
-        raise ValueError(f"fpu needs m >= 1 and omega > 0; got m={m}, omega={omega}.")
+    check_count("fpu", m=m)
+    check_positive("fpu", omega=omega)
     s = 1 / math.sqrt(2)
     q0 = jnp.zeros(2 * m).at[0].set(s * (1 - 1 / omega)).at[1].set(s * (1 + 1 / omega))
     p0 = jnp.zeros(2 * m).at[1].set(2 * s)

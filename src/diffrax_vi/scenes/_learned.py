@@ -13,7 +13,7 @@ from .._lagrangian import AbstractSeparableLagrangian
 from .._solver import MidpointVI
 from .._term import LagrangianTerm
 from ._one_dof import PendulumLagrangian
-from ._scene import agm, Scene
+from ._scene import agm, check_count, Scene
 
 
 class LearnedLagrangian(AbstractSeparableLagrangian):
@@ -103,6 +103,9 @@ def learned(seed: int = 0, max_steps: int = 300) -> Scene:
     $10^{-12}$), by differentiating through `MidpointVI`. Started from rest at
     amplitude 1.5; the time scale is the true pendulum's period at that amplitude.
     The first call trains (tens of seconds on a CPU); later calls reuse the result."""
+    check_count("learned", max_steps=max_steps)
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ValueError(f"learned(seed=...) needs an integer; got {seed!r}.")
     amplitude = 1.5
     return Scene(
         name="learned",

@@ -16,7 +16,7 @@ from .._lagrangian import (
     velocity,
 )
 from ._one_dof import DuffingLagrangian, parameter, PendulumLagrangian
-from ._scene import agm, Scene
+from ._scene import agm, check_count, check_positive, Scene
 
 
 class DampedDrive(eqx.Module):
@@ -40,6 +40,7 @@ def forced_duffing(
     attractor. From rest at $q = 1$; time scale one drive period $2\pi/\omega$.
     Nothing is conserved: a study checks the energy balance
     $E(t) - E(0) - W(t)$ instead."""
+    check_positive("forced_duffing", frequency=frequency)
     return Scene(
         name="forced_duffing",
         lagrangian=DuffingLagrangian(),
@@ -158,6 +159,7 @@ def four_bar(crank_speed: float = 3.0) -> Scene:
     the crank upright, $\theta_1 = \pi/2$, turning at `crank_speed`; the other angles
     and velocities close the loop. Time scale $2\pi/$`crank_speed`. Conserves the
     energy."""
+    check_positive("four_bar", crank_speed=crank_speed)
     lagrangian = FourBarLagrangian()
     closure = LoopClosure()
     l0, l1, l2, l3 = (
@@ -228,6 +230,8 @@ def swing_up(controls: int = 20, horizon: float = 10.0) -> Scene:
     (zero by default): differentiate a solve with respect to it to find the controls
     that bring the pendulum upright, $q = \pi$, at `horizon` (see
     `examples/swing_up.py`). Time scale $2\pi$."""
+    check_count("swing_up", controls=controls)
+    check_positive("swing_up", horizon=horizon)
     return Scene(
         name="swing_up",
         lagrangian=PendulumLagrangian(),

@@ -5,7 +5,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._lagrangian import AbstractSeparableLagrangian
-from ._scene import agm, Scene
+from ._scene import agm, check_positive, Scene
 
 
 def parameter(default: float):
@@ -81,6 +81,7 @@ def falling_particle(g: float = 9.81) -> Scene:
 def oscillator(omega: float = 1.0) -> Scene:
     r"""The harmonic oscillator from $q_0 = 1$, $p_0 = 0$: exact solution
     $q = \cos \omega t$, $p = -\omega \sin \omega t$; period $2\pi/\omega$."""
+    check_positive("oscillator", omega=omega)
 
     def exact(t):
         return jnp.cos(omega * t), -omega * jnp.sin(omega * t)

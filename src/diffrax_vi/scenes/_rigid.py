@@ -7,7 +7,7 @@ from jaxtyping import Array, Float
 from .._lagrangian import AbstractLagrangian
 from .._so3 import SO3
 from .._space import Euclidean
-from ._scene import Scene
+from ._scene import check_positive, Scene
 
 
 class RigidBodyLagrangian(AbstractLagrangian):
@@ -50,6 +50,7 @@ def free_rigid_body(
     of GeometricProblems.jl: $J = (2, 1, 2/3)$, $a = 1.1$). Conserved: the energy, the
     Casimir $|\Pi|$, the spatial angular momentum $R\Pi$; the attitude stays on
     SO(3)."""
+    check_positive("free_rigid_body", inertia=inertia)
     lagrangian = RigidBodyLagrangian(
         jnp.asarray(inertia, float), jnp.zeros(3), jnp.asarray(0.0)
     )
@@ -80,6 +81,7 @@ def heavy_top(
     $\Pi_0 = (0, 0, J_3\,\text{spin})$. Conserved: the energy, the vertical spatial
     angular momentum $e_3\cdot R\Pi$ (rotations about the vertical) and the spin $\Pi_3$
     (rotations about the axis)."""
+    check_positive("heavy_top", inertia=inertia, spin=spin)
     lagrangian = RigidBodyLagrangian(
         jnp.asarray(inertia, float), jnp.array([0.0, 0.0, 1.0]), jnp.asarray(weight)
     )
@@ -120,6 +122,7 @@ def pendulum_3d(
     spatial angular momentum $e_3\cdot R\Pi$; the attitude stays on SO(3). The
     period is that of small swings about the first principal axis,
     $2\pi\sqrt{J_1/(m g|\chi|)}$."""
+    check_positive("pendulum_3d", inertia=inertia, weight=weight)
     lagrangian = RigidBodyLagrangian(
         jnp.asarray(inertia, float), jnp.asarray(centre, float), jnp.asarray(weight)
     )
@@ -187,6 +190,7 @@ def satellite(
     as a satellite's are (at $J \sim 0.1$ the gradient's force is a third of
     gravity's and the orbit falls in). Conserved: the energy and the total angular
     momentum $x \times p_x + R\Pi$; the attitude stays on SO(3)."""
+    check_positive("satellite", inertia=inertia)
     lagrangian = SatelliteLagrangian(
         jnp.asarray(1.0), jnp.asarray(inertia, float), jnp.asarray(1.0)
     )

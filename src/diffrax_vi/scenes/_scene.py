@@ -1,3 +1,4 @@
+import math
 from collections.abc import Callable
 
 import equinox as eqx
@@ -109,3 +110,27 @@ def agm(a: float, b: float) -> float:
     for _ in range(60):
         a, b = (a + b) / 2, (a * b) ** 0.5
     return a
+
+
+def check_positive(scene: str, **values) -> None:
+    """A `ValueError` naming the scene and the parameter unless every value (a number,
+    or a sequence of them) is finite and positive."""
+    for name, value in values.items():
+        entries = value if isinstance(value, tuple | list) else (value,)
+        if not all(
+            isinstance(x, int | float) and math.isfinite(x) and x > 0 for x in entries
+        ):
+            raise ValueError(
+                f"{scene}({name}=...) needs a finite positive value"
+                f"{'s' if len(entries) > 1 else ''}; got {value!r}."
+            )
+
+
+def check_count(scene: str, **values) -> None:
+    """A `ValueError` naming the scene and the parameter unless every value is an
+    integer of at least 1 (not a float with an integer value: it would make shapes)."""
+    for name, value in values.items():
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(
+                f"{scene}({name}=...) needs an integer of at least 1; got {value!r}."
+            )

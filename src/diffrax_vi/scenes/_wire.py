@@ -5,7 +5,7 @@ from jaxtyping import Array, Float
 
 from .._lagrangian import AbstractQuadraticLagrangian
 from ._one_dof import parameter
-from ._scene import Scene
+from ._scene import check_count, Scene
 
 
 class BeadWireLagrangian(AbstractQuadraticLagrangian):
@@ -60,7 +60,8 @@ def bead_wire(n: int = 32, displacement: float = 0.2) -> Scene:
     it to 4096). Its time scale is the period of the fastest small oscillation,
     $2\pi/\sqrt{g a k^2 + 4\kappa/m}$ (1.82 with the defaults); the energy is
     conserved."""
-    if n < 1 or not 0 <= displacement < 0.5:
+    check_count("bead_wire", n=n)
+    if not 0 <= displacement < 0.5:
         raise ValueError(
             "bead_wire needs n >= 1 beads and a displacement in [0, 0.5) spacings "
             f"(beyond half a spacing a bead leaves its trough); got n={n}, "

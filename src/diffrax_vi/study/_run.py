@@ -1,5 +1,6 @@
 import dataclasses
 import math
+import re
 import time
 
 import diffrax as dfx
@@ -283,7 +284,13 @@ def run(
     vmapped = jax.vmap if ensemble else lambda f: f
     solve = eqx.filter_jit(vmapped(solve))
     plain = eqx.filter_jit(vmapped(plain))
-    errors, final, steps, result = jax.block_until_ready(solve(y0))
+    try:
+        errors, final, steps, result = jax.block_until_ready(solve(y0))
+    except eqx.EquinoxRuntimeError as error:
+        # A vector field that cannot return a RESULTS raised (a Runge-Kutta solve of
+        # a LagrangianTerm that left where the Legendre map or the constraint
+        # forces can be solved): this method's row says why, the others still run.
+        return _failed(scene, y0, ensemble, n_save, error)
     jax.block_until_ready(plain(y0))
     times = []
     while len(times) < 3 and sum(times) < 1.0:
@@ -307,4 +314,26 @@ def run(
         steps=int(np.max(steps)),
         wall_time=wall_time,
         results=results,
+    )
+
+
+def _failed(
+    scene: Scene, y0: PyTree, ensemble: bool, n_save: int, error: Exception
+) -> Outcome:
+    """The outcome of a solve that raised: no errors, no state, no time, and the
+    error's message (its first line, as the table shows) as the result."""
+    members = jax.tree.leaves(y0)[0].shape[0] if ensemble else 1
+    errors = np.full((members, n_save + 1), np.nan)
+    errors[:, 0] = 0.0
+    # equinox puts the stack first and its own advice after the message.
+    text = str(error)
+    found = re.search(r"EquinoxRuntimeError: (.*?)(\n\n|$)", text, re.S)
+    message = (found.group(1) if found else text).strip().split("\n")[0]
+    lead = () if ensemble else (1,)
+    return Outcome(
+        max_errors={k: errors.copy() for k in columns(scene)},
+        final=jax.tree.map(lambda x: np.full(lead + np.shape(x), np.nan), y0),
+        steps=0,
+        wall_time=math.nan,
+        results=[f"raised: {message}"] * members,
     )

@@ -1,0 +1,356 @@
+"""What a hostile user gets: a correct result, a ValueError at trace time, or a
+non-successful result or error that names the cause, never a NaN or garbage state
+reported as a success."""
+
+import diffrax as dfx
+import diffrax_vi as dvi
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+
+def _oscillator(t, q, v, args):
+    return 0.5 * v**2 - 0.5 * q**2
+
+
+Y0 = (jnp.array(1.0), jnp.array(0.0))
+
+
+# A pendulum of length `args` as a point mass on a circle: one compiled solve for
+# every length.
+CIRCLE = dvi.LagrangianTerm(
+    lambda t, q, v, args: 0.5 * jnp.sum(v**2) - q[1],
+    constraint=lambda t, q, args: {"circle": jnp.sum(q**2) - args**2},
+)
+
+
+# --- Runge-Kutta solvers on a term: NaN from the force or the Lagrangian ----------
+
+
+def test_a_nan_force_under_runge_kutta_raises_where_the_term_checks_its_steps():
+    """A general Lagrangian's vector field checks every evaluation: a friction
+    -v/|v| from rest raises, naming the force."""
+    lagrangian = lambda t, q, v, args: 0.5 * v**2 + 0.01 * v**4 - 0.5 * q**2
+    term = dvi.LagrangianTerm(lagrangian, force=lambda t, q, v, args: -v / jnp.abs(v))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="applied force gave NaN"):
+        dfx.diffeqsolve(term, dfx.Tsit5(), 0.0, 1.0, 0.1, Y0, throw=False)
+
+
+def test_a_nan_force_of_a_separable_term_is_reported_by_solve_fixed_steps():
+    """A separable term carries no per-step check (for speed); the runners of this
+    package report its NaN as `nonfinite` and cut `t_reached` back."""
+    lagrangian = dvi.SeparableLagrangian(lambda t, q, args: 0.5 * q**2)
+    term = dvi.LagrangianTerm(lagrangian, force=lambda t, q, v, args: -v / jnp.abs(v))
+    sol = dvi.solve_fixed_steps(term, dfx.Tsit5(), 0.0, 1.0, 0.1, Y0, n_save=5)
+    assert sol.result == dfx.RESULTS.nonfinite
+    assert sol.t_reached == 0.0 and sol.num_steps == 0
+
+
+def test_solve_fixed_steps_reports_nan_starts_and_overflow_of_diffrax_solvers():
+    term = dvi.LagrangianTerm(_oscillator)
+    nan = dvi.solve_fixed_steps(
+        term, dfx.Euler(), 0.0, 1.0, 0.1, (jnp.array(jnp.nan), jnp.array(0.0))
+    )
+    assert nan.result == dfx.RESULTS.nonfinite and nan.t_reached == 0.0
+    # Explicit Euler on the oscillator at h = 10 grows by |1 + 10i| ~ 10 per step:
+    # from 1e300 it overflows in the ninth step; the eight saves before it are kept.
+    big = dvi.solve_fixed_steps(
+        term,
+        dfx.Euler(),
+        0.0,
+        100.0,
+        10.0,
+        (jnp.array(1e300), jnp.array(0.0)),
+        n_save=10,
+    )
+    assert big.result == dfx.RESULTS.nonfinite
+    assert big.t_reached == 80.0 and big.num_steps == 8
+    assert np.all(np.isfinite(big.ys[0][:9])) and not np.isfinite(big.ys[0][9])
+
+
+def test_solve_fixed_steps_checks_what_diffeqsolve_checks():
+    term = dvi.LagrangianTerm(_oscillator)
+    with pytest.raises(ValueError, match="not compatible|term"):
+        dvi.solve_fixed_steps(term, dvi.StormerVerlet(), 0.0, 1.0, 0.1, Y0)
+    with pytest.raises(ValueError, match="tolerances from an adaptive"):
+        dvi.solve_fixed_steps(term, dfx.Kvaerno5(), 0.0, 1.0, 0.1, Y0)
+    with pytest.raises(ValueError, match="makes 1e\\+12 steps"):
+        dvi.solve_fixed_steps(term, dfx.Tsit5(), 0.0, 1.0, 1e-12, Y0)
+
+
+# --- Constraints -------------------------------------------------------------
+
+
+def test_constrained_start_is_checked_to_sqrt_eps_in_any_units():
+    """5e-5 off the circle (relative) is refused; 1e-11 (round-off of a computed
+    start) passes, and the motion keeps |q| on the circle; at two lengths."""
+
+    def solve(length, off):
+        q0 = jnp.array([length * (1 + off), 0.0])
+        return dfx.diffeqsolve(
+            CIRCLE,
+            dvi.TrapezoidalVI(),
+            0.0,
+            1.0,
+            0.1,
+            (q0, jnp.zeros(2)),
+            args=jnp.asarray(length),
+            throw=False,
+        )
+
+    for length in (1.0, 1e3):
+        with pytest.raises(eqx.EquinoxRuntimeError, match="not on the constraint"):
+            solve(length, 5e-5)
+        sol = solve(length, 1e-11)
+        assert sol.result == dfx.RESULTS.successful
+        radius = jnp.linalg.norm(sol.ys[0][-1])
+        assert abs(radius - length) < 1e-12 * length
+
+
+def test_a_nan_constraint_is_named():
+    y0 = (jnp.array([1.0, 0.0]), jnp.zeros(2))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="NaN or inf at a finite q0"):
+        dfx.diffeqsolve(CIRCLE, dvi.TrapezoidalVI(), 0.0, 1.0, 0.1, y0, args=jnp.nan)
+
+
+def test_constraint_values_in_lower_precision_are_refused():
+    term = dvi.LagrangianTerm(
+        lambda t, q, v, args: 0.5 * jnp.sum(v**2) - q[1],
+        constraint=lambda t, q, args: jnp.sum(q.astype(jnp.float32) ** 2) - 1,
+    )
+    with pytest.raises(ValueError, match="float32 values in a float64 solve"):
+        dfx.diffeqsolve(
+            term,
+            dvi.TrapezoidalVI(),
+            0.0,
+            1.0,
+            0.1,
+            (jnp.array([1.0, 0.0]), jnp.zeros(2)),
+        )
+
+
+def test_complex_state_is_refused():
+    # diffrax warns first that its complex support is a work in progress.
+    with pytest.raises(ValueError, match="is complex"), pytest.warns(UserWarning):
+        dfx.diffeqsolve(
+            dvi.LagrangianTerm(_oscillator),
+            dvi.MidpointVI(),
+            0.0,
+            1.0,
+            0.1,
+            (jnp.array(1.0 + 0j), jnp.array(0j)),
+        )
+
+
+# --- Tableaus, root finders, controllers, adjoints ---------------------------
+
+
+def test_a_tableau_claiming_more_order_than_its_coefficients_is_refused():
+    with pytest.raises(ValueError, match="fail the order conditions of order 2"):
+        dvi.VPRKTableau(
+            a=np.array([[1.0]]),
+            a_bar=np.array([[0.0]]),
+            b=np.array([1.0]),
+            c=np.array([1.0]),
+            order=6,
+        )
+    # The implicit midpoint rule is of order 2, not 4: a composition on it would
+    # otherwise claim 6.
+    with pytest.raises(ValueError, match="order conditions of order 3"):
+        dvi.VPRKTableau(
+            a=np.array([[0.5]]),
+            a_bar=np.array([[0.5]]),
+            b=np.array([1.0]),
+            c=np.array([0.5]),
+            order=4,
+        )
+    # Gauss with 4 stages and Lobatto IIIA-IIIB with 5 meet all 9498 conditions of
+    # order 8, and fail one of order 9.
+    from diffrax_vi._solver.trees import satisfied_order
+    from diffrax_vi._solver.vprk import gauss_tableau, lobatto_tableau
+
+    for tableau in (gauss_tableau(4), lobatto_tableau(5)):
+        assert satisfied_order(tableau.a, tableau.a_bar, tableau.b, 9) == 8
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: dvi.Newton(rtol=0.0),
+        lambda: dvi.Newton(rtol=float("nan")),
+        lambda: dvi.FixedPoint(rtol=-1e-8),
+        lambda: dvi.SimplifiedNewton(kappa=1.5),
+        lambda: dvi.MidpointVI(root_find_max_steps=0),
+        lambda: dvi.TrapezoidalVI(root_find_max_steps=-1),
+    ],
+)
+def test_root_finder_settings_out_of_range_are_refused(make):
+    with pytest.raises(ValueError, match="between 0 and 1|at least 1"):
+        make()
+
+
+def test_reversible_controller_fails_a_zero_step_and_refuses_a_non_symmetric_solver():
+    monitor = dvi.PotentialMonitor(
+        dvi.SeparableLagrangian(lambda t, q, a: -1 / (1 + q**2))
+    )
+    term = dvi.LagrangianTerm(_oscillator)
+    solve = lambda term, solver, dt0: dfx.diffeqsolve(
+        term,
+        solver,
+        0.0,
+        1.0,
+        dt0,
+        Y0,
+        stepsize_controller=dvi.ReversibleController(monitor),
+    )
+    # dt0 is traced inside diffeqsolve: a zero step is a failed first step, not
+    # max_steps of zero-length ones.
+    with pytest.raises(eqx.EquinoxRuntimeError, match="Nonfinite"):
+        solve(term, dvi.MidpointVI(), 0.0)
+    for solver in (dfx.Euler(), dfx.HalfSolver(dvi.MidpointVI())):
+        with pytest.raises(ValueError, match="only with a symmetric solver"):
+            solve(term, solver, 0.1)
+    pair = (dfx.ODETerm(lambda t, p, args: p), dfx.ODETerm(lambda t, q, args: -q))
+    with pytest.raises(ValueError, match="only with a symmetric solver"):
+        solve(pair, dfx.SemiImplicitEuler(), 0.1)
+
+
+def test_backsolve_adjoint_says_it_is_not_supported():
+    term = dvi.LagrangianTerm(_oscillator)
+
+    def final(q0):
+        sol = dfx.diffeqsolve(
+            term,
+            dvi.MidpointVI(),
+            0.0,
+            1.0,
+            0.1,
+            (q0, jnp.array(0.0)),
+            adjoint=dfx.BacksolveAdjoint(),
+        )
+        return sol.ys[0][-1]
+
+    with pytest.raises(ValueError, match="RecursiveCheckpointAdjoint"):
+        jax.grad(final)(1.0)
+
+
+# --- Forces in implicit steps ------------------------------------------------
+
+
+def test_strong_damping_in_a_composition_is_not_a_false_failure():
+    """yoshida4's backward substep makes the damping an anti-damping, and the step's
+    Jacobian indefinite at its one root: not a fold. Against the exact solution of
+    q'' + c q' + q = 0, for c = 13 and 50 at h = 0.1 and 0.05."""
+    term = dvi.LagrangianTerm(_oscillator, force=lambda t, q, v, args: -args * v)
+    solver = dvi.Composition(dvi.MidpointVI(), "yoshida4")
+    for damping in (13.0, 50.0):
+        roots = np.roots([1.0, damping, 1.0])
+        a, b = np.linalg.solve([[1, 1], roots], [1.0, 0.0])
+        exact = a * np.exp(roots[0]) + b * np.exp(roots[1])
+        errors = []
+        for h in (0.1, 0.05):
+            sol = dfx.diffeqsolve(
+                term,
+                solver,
+                0.0,
+                jnp.asarray(1.0),
+                jnp.asarray(h),
+                Y0,
+                args=jnp.asarray(damping),
+            )
+            errors.append(abs(float(sol.ys[0][-1]) - exact))
+        # At c h ~ 1 the error is not yet in its asymptotic regime: it falls,
+        # without the fourth order's factor 16.
+        assert errors[1] < errors[0] < 1e-6, (damping, errors)
+
+
+def test_a_non_finite_force_in_an_implicit_step_is_nonfinite():
+    term = dvi.LagrangianTerm(_oscillator, force=lambda t, q, v, args: args * q)
+    for solver in (dvi.MidpointVI(), dvi.TrapezoidalVI()):
+        for force in (jnp.nan, jnp.inf):
+            sol = dfx.diffeqsolve(
+                term, solver, 0.0, 1.0, 0.1, Y0, args=jnp.asarray(force), throw=False
+            )
+            assert sol.result == dfx.RESULTS.nonfinite, (solver, force)
+
+
+# --- LinearizedVI with steps of changing size ---------------------------------
+
+
+def test_linearized_vi_on_alternating_steps_converges():
+    """Steps alternating between h and 2h: each change rebuilds the past at the new
+    step, so the method converges (second order) instead of failing."""
+    errors = []
+    for h in (0.02, 0.01):
+        ts = np.concatenate([[0.0], np.cumsum(np.tile([h, 2 * h], int(1 / (3 * h))))])
+        sol = dfx.diffeqsolve(
+            dvi.LagrangianTerm(_oscillator),
+            dvi.LinearizedVI(),
+            0.0,
+            ts[-1],
+            None,
+            Y0,
+            stepsize_controller=dfx.StepTo(ts),
+            max_steps=len(ts),
+        )
+        errors.append(abs(float(sol.ys[0][-1]) - np.cos(ts[-1])))
+    assert errors[1] < errors[0] / 3, errors
+
+
+# --- Scenes and the command line --------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "make,match",
+    [
+        (lambda: dvi.scenes.swing_up(horizon=0.0), "horizon"),
+        (lambda: dvi.scenes.swing_up(horizon=-1.0), "horizon"),
+        (lambda: dvi.scenes.oscillator(omega=0.0), "omega"),
+        (lambda: dvi.scenes.forced_duffing(frequency=0.0), "frequency"),
+        (lambda: dvi.scenes.four_bar(crank_speed=0.0), "crank_speed"),
+        (lambda: dvi.scenes.fpu(m=0), "at least 1"),
+        (lambda: dvi.scenes.swing_up(controls=0), "at least 1"),
+        (lambda: dvi.scenes.heavy_top(inertia=(1.0, 1.0, 0.0)), "inertia"),
+    ],
+)
+def test_scene_parameters_out_of_range_are_refused(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_cli_reads_integer_and_tuple_parameters_and_refuses_bad_ones():
+    from diffrax_vi.cli import _scene, UsageError
+
+    assert _scene("bead_wire", ["n=8"]).y0[0].shape == (8,)
+    assert _scene("fpu", ["m=2"]).y0[0].shape == (4,)
+    top = _scene("heavy_top", ["inertia=2,2,1"])
+    np.testing.assert_array_equal(top.lagrangian.inertia, [2.0, 2.0, 1.0])
+    for params, match in (
+        (["n=8.5"], "not an integer"),
+        (["displacement=nan"], "finite"),
+        (["n=0"], "at least 1"),
+    ):
+        with pytest.raises(UsageError, match=match):
+            _scene("bead_wire", params)
+    for scene, param in (("oscillator", "omega=0"), ("four_bar", "crank_speed=0")):
+        with pytest.raises(UsageError, match="positive"):
+            _scene(scene, [param])
+
+
+def test_a_run_that_raises_is_a_row_of_the_study():
+    """Tsit5 on the four-bar linkage at 50 steps per turn drifts off the closure
+    into a singular configuration within 100 turns, and its vector field raises:
+    that row says so, and MidpointVI's row is kept."""
+    study = dvi.study.drift(
+        dvi.scenes.four_bar(),
+        ["Tsit5", "MidpointVI"],
+        periods=100,
+        steps_per_period=50,
+        n_save=10,
+    )
+    rows = {run.solver: run for run in study.runs}
+    assert rows["Tsit5"].result.startswith("raised: The constraint forces cannot")
+    assert rows["MidpointVI"].result == "successful"
+    assert "1 run(s) failed" in study.verdict()
