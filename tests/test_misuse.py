@@ -184,10 +184,11 @@ def test_a_tableau_claiming_more_order_than_its_coefficients_is_refused():
         lambda: dvi.SimplifiedNewton(kappa=1.5),
         lambda: dvi.MidpointVI(root_find_max_steps=0),
         lambda: dvi.TrapezoidalVI(root_find_max_steps=-1),
+        lambda: dvi.LinearizedVI(max_del_residual=-1.0),
     ],
 )
 def test_root_finder_settings_out_of_range_are_refused(make):
-    with pytest.raises(ValueError, match="between 0 and 1|at least 1"):
+    with pytest.raises(ValueError, match="between 0 and 1|at least 1|positive number"):
         make()
 
 

@@ -126,6 +126,16 @@ class LinearizedVI(AbstractVariationalSolver):
                 f"LinearizedVI(velocity=...) must be 'forward' or 'centered', got "
                 f"{self.velocity!r}."
             )
+        bound = self.max_del_residual
+        if (
+            bound is not None
+            and not isinstance(bound, jax.core.Tracer)
+            and not (jnp.ndim(bound) == 0 and float(bound) > 0)
+        ):
+            raise ValueError(
+                "LinearizedVI(max_del_residual=...) must be a positive number (a "
+                f"fraction of the largest momentum), or None; got {bound!r}."
+            )
 
     def order(self, terms):
         return None

@@ -197,9 +197,7 @@ def solve_step(
     # iteration's first update non-finite: `nonfinite`, not a diverged iteration
     # (whose iterates stay finite over its few steps).
     result = dfx.RESULTS.where(
-        (result != dfx.RESULTS.successful)
-        & ~all_finite(unknowns)
-        & all_finite(guess),
+        (result != dfx.RESULTS.successful) & ~all_finite(unknowns) & all_finite(guess),
         dfx.RESULTS.nonfinite,
         result,
     )
