@@ -16,9 +16,12 @@ import numpy as np
 import pytest
 from diffrax_vi import scenes
 from diffrax_vi._private_api import (
+    AdjointTerm,
+    assert_term_compatible,
     backends_are_initialized,
     NoForwardingSolverMeta,
     unvmap_any,
+    use_stepsize_tol,
     WrapTerm,
 )
 
@@ -251,3 +254,27 @@ def test_private_api_assumptions():
     # equinox's unvmap_any: the `any` over a batch, seen as one value inside vmap.
     out = jax.vmap(lambda x: unvmap_any(x > 0))(jnp.array([-1.0, 2.0]))
     assert out.shape == (2,) and bool(jnp.all(out))
+    # diffeqsolve's own check of terms against the solver: a ValueError.
+    term = dfx.ODETerm(lambda t, y, args: -y)
+    tsit5, pair = dfx.Tsit5(), dfx.SemiImplicitEuler()
+    assert_term_compatible(
+        0.0,
+        jnp.array(1.0),
+        None,
+        term,
+        tsit5.term_structure,
+        tsit5.term_compatible_contr_kwargs,
+    )
+    with pytest.raises(ValueError, match="not compatible"):
+        assert_term_compatible(
+            0.0,
+            (jnp.array(1.0),) * 2,
+            None,
+            term,
+            pair.term_structure,
+            pair.term_compatible_contr_kwargs,
+        )
+    # An implicit solver's root finder leaves its tolerances to the controller.
+    assert dfx.Kvaerno5().root_finder.rtol is use_stepsize_tol
+    # BacksolveAdjoint's backward solve hands the solver an AdjointTerm.
+    assert issubclass(AdjointTerm, dfx.AbstractTerm)

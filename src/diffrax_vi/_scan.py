@@ -112,9 +112,10 @@ def _first_non_finite(ts, ys, reached, steps, result, per_interval):
     solvers at fixed steps) produced NaN or inf: `RESULTS.nonfinite`, with the time
     reached and the steps taken cut back to the last save with a finite state."""
     finite = jax.vmap(all_finite)(ys)
-    first_bad = jnp.argmin(finite)
-    bad = (result == dfx.RESULTS.successful) & ~finite[first_bad]
-    last_good = jnp.maximum(first_bad - 1, 0)
+    # The number of finite saves before the first that is not.
+    leading = jnp.sum(jnp.cumprod(finite.astype(jnp.int32)))
+    bad = (result == dfx.RESULTS.successful) & (leading < finite.shape[0])
+    last_good = jnp.maximum(leading - 1, 0)
     reached = jnp.where(bad, jnp.minimum(reached, ts[last_good]), reached)
     kept = last_good.astype(steps.dtype) * per_interval
     steps = jnp.where(bad, jnp.minimum(steps, kept), steps)
