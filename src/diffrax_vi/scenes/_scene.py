@@ -120,10 +120,12 @@ def check_positive(scene: str, **values) -> None:
         if not all(
             isinstance(x, int | float) and math.isfinite(x) and x > 0 for x in entries
         ):
-            raise ValueError(
-                f"{scene}({name}=...) needs a finite positive value"
-                f"{'s' if len(entries) > 1 else ''}; got {value!r}."
+            what = (
+                "finite positive values"
+                if len(entries) > 1
+                else "a finite positive value"
             )
+            raise ValueError(f"{scene}({name}=...) needs {what}; got {value!r}.")
 
 
 def check_count(scene: str, **values) -> None:
