@@ -115,6 +115,35 @@ def test_a_nan_constraint_is_named():
         dfx.diffeqsolve(CIRCLE, dvi.TrapezoidalVI(), 0.0, 1.0, 0.1, y0, args=jnp.nan)
 
 
+def test_a_non_finite_state_of_a_constrained_general_lagrangian_is_nonfinite():
+    """A Lagrangian not quadratic in v: the momentum projection solves for v and
+    the multipliers together, so a NaN start, an inf momentum or a NaN parameter
+    ends the solve with `nonfinite` instead of a linear solver's exception."""
+    term = dvi.LagrangianTerm(
+        lambda t, q, v, args: 0.5 * jnp.sum(v**2) + args * jnp.sum(v**4) - q[1],
+        constraint=lambda t, q, args: jnp.sum(q**2) - 1,
+    )
+    q0, p0 = jnp.array([1.0, 0.0]), jnp.zeros(2)
+    cases = (
+        ((jnp.array([jnp.nan, 0.0]), p0), 0.01),
+        ((q0, jnp.array([0.0, jnp.inf])), 0.01),
+        ((q0, p0), jnp.nan),
+    )
+    for solver in (dvi.MidpointVI(), dvi.TrapezoidalVI()):
+        for y0, c in cases:
+            sol = dfx.diffeqsolve(
+                term, solver, 0.0, 1.0, 0.1, y0, args=jnp.asarray(c), throw=False
+            )
+            assert sol.result == dfx.RESULTS.nonfinite, (solver, y0, c)
+    # The same step on finite data keeps |q| = 1 and G v = 0.
+    sol = dfx.diffeqsolve(
+        term, dvi.TrapezoidalVI(), 0.0, 1.0, 0.1, (q0, p0), args=jnp.asarray(0.01)
+    )
+    q, p = sol.ys[0][-1], sol.ys[1][-1]
+    v, _ = dvi.velocity(term.lagrangian, 1.0, (q, p), jnp.asarray(0.01))
+    assert abs(jnp.linalg.norm(q) - 1) < 1e-12 and abs(q @ v) < 1e-12 * jnp.abs(v).max()
+
+
 def test_constraint_values_in_lower_precision_are_refused():
     term = dvi.LagrangianTerm(
         lambda t, q, v, args: 0.5 * jnp.sum(v**2) - q[1],
@@ -267,14 +296,21 @@ def test_strong_damping_in_a_composition_is_not_a_false_failure():
         assert errors[1] < errors[0] < 1e-6, (damping, errors)
 
 
-def test_a_non_finite_force_in_an_implicit_step_is_nonfinite():
-    term = dvi.LagrangianTerm(_oscillator, force=lambda t, q, v, args: args * q)
-    for solver in (dvi.MidpointVI(), dvi.TrapezoidalVI()):
-        for force in (jnp.nan, jnp.inf):
-            sol = dfx.diffeqsolve(
-                term, solver, 0.0, 1.0, 0.1, Y0, args=jnp.asarray(force), throw=False
-            )
-            assert sol.result == dfx.RESULTS.nonfinite, (solver, force)
+def test_a_non_finite_force_or_parameter_in_an_implicit_step_is_nonfinite():
+    """NaN or inf in a force, or in the potential's parameter of a separable
+    Lagrangian (solved by the fixed-point iteration, then Newton's method)."""
+    forced = dvi.LagrangianTerm(_oscillator, force=lambda t, q, v, args: args * q)
+    spring = dvi.LagrangianTerm(
+        dvi.SeparableLagrangian(lambda t, q, args: 0.5 * args * q**2)
+    )
+    for term in (forced, spring):
+        for solver in (dvi.MidpointVI(), dvi.TrapezoidalVI()):
+            for value in (jnp.nan, jnp.inf):
+                args = jnp.asarray(value)
+                sol = dfx.diffeqsolve(
+                    term, solver, 0.0, 1.0, 0.1, Y0, args=args, throw=False
+                )
+                assert sol.result == dfx.RESULTS.nonfinite, (solver, value)
 
 
 # --- LinearizedVI with steps of changing size ---------------------------------

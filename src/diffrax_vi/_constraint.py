@@ -23,9 +23,23 @@ import lineax as lx
 from jaxtyping import Array, Float, PyTree
 
 from ._custom_types import Args, P, Q, RealScalarLike
-from ._lagrangian import momentum, velocity
+from ._lagrangian import (
+    AbstractLagrangian,
+    AbstractQuadraticLagrangian,
+    AbstractSeparableLagrangian,
+    legendre_residual,
+    momentum,
+    velocity,
+)
 from ._misc import all_finite, split_state, state_dtype
-from ._nonlinear import Newton, newton_tolerance, scaled_norm, singular_threshold, solve
+from ._nonlinear import (
+    Newton,
+    NEWTON_DENSE_MAX,
+    newton_tolerance,
+    scaled_norm,
+    singular_threshold,
+    solve,
+)
 
 
 def constraint_values(
@@ -137,24 +151,59 @@ def project_momentum(
     + \partial g/\partial t = 0$: the momentum on the hidden constraint (RATTLE's
     projection, Hairer, Lubich & Wanner (2006), VII.1.4). Newton's method on $\mu$;
     for a Lagrangian quadratic in the velocity the equation is linear, and one
-    iteration solves it."""
+    iteration solves it.
+
+    Where the velocity is itself a root (a Lagrangian not known to be quadratic in
+    $v$, or one of more than 16 degrees of freedom), Newton's method solves for
+    $v$ and $\mu$ together, $\partial L/\partial v(q, v) = p - G^\top\mu$ and
+    $G v + \partial g/\partial t = 0$, rather than differentiate the inner root:
+    the implicit derivative of that root is a linear solve that raises on a NaN
+    state instead of letting the step report `nonfinite`."""
     g = term.constraint
     jacobian = constraint_jacobian(g, t, q, args)
     rate = constraint_rate(g, t, q, args)
     push = transpose_product(g, t, q, args)
     m = jacobian.shape[0]
+    mu0 = jnp.zeros((m,), state_dtype(p))
 
     def impulse(mu):
         return jtu.tree_map(jnp.negative, push(mu))
 
-    def residual(mu):
-        moved = jtu.tree_map(lambda a, b: a + b, p, impulse(mu))
-        v, _ = velocity(term.lagrangian, t, (q, moved), args)
-        return hidden_constraint(jacobian, v, rate)
+    def moved(mu):
+        return jtu.tree_map(lambda a, b: a + b, p, impulse(mu))
 
-    solved = solve(residual, jnp.zeros((m,), state_dtype(p)), Newton(), 16)
-    kick = impulse(solved.value)
+    if _velocity_is_explicit(term.lagrangian, p):
+
+        def residual(mu):
+            v, _ = velocity(term.lagrangian, t, (q, moved(mu)), args)
+            return hidden_constraint(jacobian, v, rate)
+
+        solved = solve(residual, mu0, Newton(), 16)
+        mu = solved.value
+    else:
+
+        def residual(unknowns):
+            v, mu = unknowns
+            legendre = legendre_residual(term.lagrangian, t, q, moved(mu), args)(v)
+            return tuple(zip(legendre, hidden_constraint(jacobian, v, rate)))
+
+        zeros = jtu.tree_map(jnp.zeros_like, p)
+        solved = solve(residual, (zeros, mu0), Newton(), 32)
+        mu = solved.value[1]
+    kick = impulse(mu)
     return Projected(jtu.tree_map(lambda a, b: a + b, p, kick), kick, solved.result)
+
+
+def _velocity_is_explicit(lagrangian: AbstractLagrangian, p: P) -> bool:
+    """Whether `velocity` computes $v(q, p)$ without a root finder, by differentiable
+    arithmetic: a separable Lagrangian, or one marked quadratic in $v$ of at most
+    16 degrees of freedom (one unrolled elimination)."""
+    if isinstance(lagrangian, AbstractSeparableLagrangian):
+        return True
+    n = sum(jnp.size(x) for x in jtu.tree_leaves(p))
+    return isinstance(lagrangian, AbstractQuadraticLagrangian) and (
+        n <= NEWTON_DENSE_MAX
+    )
 
 
 def project_onto_constraints(

@@ -545,7 +545,8 @@ def velocity(
 
         r0 = flat_residual(flat_zeros)
         x, ratio = unrolled_lu_solve(jax.jacfwd(flat_residual)(flat_zeros), -r0)
-        regular = ratio > singular_threshold(n, dtype)
+        # NaN pivots (a NaN Lagrangian) are not a singular one: `nonfinite` below.
+        regular = ~(ratio <= singular_threshold(n, dtype))
         # The marker is a promise: if `L` is not quadratic in `v` after all, the one
         # solve is wrong, and the residual at its answer says so.
         v = eqx.error_if(
@@ -566,7 +567,7 @@ def velocity(
                 max_steps=32,
                 tags=frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag}),
             )
-            regular = solved.pivot_ratio > singular_threshold(n, dtype)
+            regular = ~(solved.pivot_ratio <= singular_threshold(n, dtype))
             converged = solved.result == dfx.RESULTS.successful
             return solved.value, dfx.RESULTS.where(
                 ~regular,
@@ -597,8 +598,9 @@ def velocity(
 
 def result_or_nonfinite(v: V, p: P, result: dfx.RESULTS) -> dfx.RESULTS:
     """`RESULTS.nonfinite` for a NaN or inf velocity from a finite momentum that no
-    other check explains (NaN from the Lagrangian, its parameters or `args`)."""
-    bad = (result == dfx.RESULTS.successful) & ~all_finite(v) & all_finite(p)
+    other check explains (NaN from the Lagrangian, its parameters or `args`, with
+    which Newton's method cannot converge either)."""
+    bad = (result != dfx.RESULTS.singular) & ~all_finite(v) & all_finite(p)
     return dfx.RESULTS.where(bad, dfx.RESULTS.nonfinite, result)
 
 

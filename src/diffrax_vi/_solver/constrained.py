@@ -61,7 +61,7 @@ def init_constrained(
         if isinstance(root_finder, AbstractVIRootFinder)
         else None
     )
-    return Unknowns(guess, guess, carry, start.positive)
+    return Unknowns(guess, guess, carry, start.positive, start.result)
 
 
 def constrained_step(

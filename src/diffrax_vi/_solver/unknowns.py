@@ -90,12 +90,14 @@ class Unknowns(eqx.Module):
     """The unknowns of the last two steps, `last` and `before_last`: the next step's
     guess is their second-order extrapolation `2 last - before_last`. Also what the
     root finder hands from one step to the next (a factorisation), and whether the
-    Newton matrix must stay positive definite (`Start.positive`)."""
+    Newton matrix must stay positive definite (`Start.positive`), and why the start
+    failed where it did (`Start.result`: the state is then NaN)."""
 
     last: PyTree
     before_last: PyTree
     carry: PyTree
     positive: Bool[Array, ""]
+    start: dfx.RESULTS
 
 
 def init_unknowns(step: StepInputs, stage_guess, root_finder) -> Unknowns:
@@ -107,7 +109,7 @@ def init_unknowns(step: StepInputs, stage_guess, root_finder) -> Unknowns:
         if isinstance(root_finder, AbstractVIRootFinder)
         else None
     )
-    return Unknowns(guess, guess, carry, start.positive)
+    return Unknowns(guess, guess, carry, start.positive, start.result)
 
 
 def _curvature(residual, w, d) -> Array:
@@ -193,13 +195,17 @@ def solve_step(
         checked = True
     unknowns = solved.value
     result = solved.result
-    # A NaN or inf applied force (or Lagrangian) at a finite start makes the
-    # iteration's first update non-finite: `nonfinite`, not a diverged iteration
-    # (whose iterates stay finite over its few steps).
+    # A NaN or inf applied force (or Lagrangian) makes the residual non-finite at a
+    # finite guess: `nonfinite`, not a diverged iteration (an iteration that stops
+    # at its last finite iterate would say so). Evaluated on failure only.
+    failed = result != dfx.RESULTS.successful
+    poisoned = lax.cond(
+        unvmap_any(failed),
+        lambda: ~all_finite(unknowns) | ~all_finite(residual(guess)[0]),
+        lambda: jnp.array(False),
+    )
     result = dfx.RESULTS.where(
-        (result != dfx.RESULTS.successful) & ~all_finite(unknowns) & all_finite(guess),
-        dfx.RESULTS.nonfinite,
-        result,
+        failed & poisoned & all_finite(guess), dfx.RESULTS.nonfinite, result
     )
     if checked and fold_residual is not None:
         # The root must continue the motion: along the way from the guess the Newton
@@ -214,21 +220,24 @@ def solve_step(
             result,
         )
     dq, dp = increments(unknowns)
-    result = start_result(step, all_finite(state.last), result)
+    result = start_result(step, all_finite(state.last), result, state.start)
     v = jtu.tree_map(lambda x: x / step.h, dq)
-    new = Unknowns(unknowns, state.last, solved.carry, state.positive)
+    new = Unknowns(unknowns, state.last, solved.carry, state.positive, state.start)
     return MethodStep(dq, dp, v, new, result, None if work is None else work(unknowns))
 
 
 def start_result(
-    step: StepInputs, state_ok: Bool[ArrayLike, ""], result: dfx.RESULTS
+    step: StepInputs,
+    state_ok: Bool[ArrayLike, ""],
+    result: dfx.RESULTS,
+    why: dfx.RESULTS = dfx.RESULTS.singular,
 ) -> dfx.RESULTS:
     """`RESULTS.nonfinite` for a NaN or inf start; else, if the method's state was
-    poisoned where it was built (the Legendre map could not be inverted, or
-    d2L/dv2 is singular), why; else `result`."""
+    poisoned where it was built, `why` (the Legendre map could not be inverted,
+    d2L/dv2 is singular, or the Lagrangian gave NaN); else `result`."""
     failed = unvmap_any(~state_ok | (result != dfx.RESULTS.successful))
     start_ok = lax.cond(
         failed, lambda: sum_is_finite((step.q0, step.p0)), lambda: jnp.array(True)
     )
-    result = dfx.RESULTS.where(state_ok, result, dfx.RESULTS.singular)
+    result = dfx.RESULTS.where(state_ok, result, why)
     return dfx.RESULTS.where(start_ok, result, dfx.RESULTS.nonfinite)
