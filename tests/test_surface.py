@@ -1,6 +1,7 @@
 """The public surface: differentiable scenes, no import-time side effects, the command
 line as a public module, and the private diffrax API this package relies on."""
 
+import inspect
 import os
 import subprocess
 import sys
@@ -19,7 +20,12 @@ from diffrax_vi._private_api import (
     AdjointTerm,
     assert_term_compatible,
     backends_are_initialized,
+    clip_to_end,
+    is_subsaveat,
     NoForwardingSolverMeta,
+    nondiff_solver_controller_state,
+    only_transpose_ys,
+    save_y,
     unvmap_any,
     use_stepsize_tol,
     WrapTerm,
@@ -278,3 +284,18 @@ def test_private_api_assumptions():
     assert dfx.Kvaerno5().root_finder.rtol is use_stepsize_tol
     # BacksolveAdjoint's backward solve hands the solver an AdjointTerm.
     assert issubclass(AdjointTerm, dfx.AbstractTerm)
+    # What ReversibleAdjoint shares with diffrax's adjoints: the loop's clipping of
+    # a step to t1 (to t1 within 100 ulp, else unchanged), the default save
+    # function, the SaveAt leaf test, and the two state helpers' signatures.
+    assert float(clip_to_end(0.0, 1.0 - 1e-15, 1.0, 1.0 - 1e-14, True)) == 1.0
+    assert float(clip_to_end(0.0, 0.5, 1.0, 1.0 - 1e-14, True)) == 0.5
+    assert save_y(0.0, 3.0, None) == 3.0 and dfx.SaveAt(t1=True).subs.fn is save_y
+    assert is_subsaveat(dfx.SaveAt(t1=True).subs)
+    params = inspect.signature(nondiff_solver_controller_state).parameters
+    assert list(params) == [
+        "adjoint",
+        "init_state",
+        "passed_solver_state",
+        "passed_controller_state",
+    ]
+    assert list(inspect.signature(only_transpose_ys).parameters) == ["final_state"]

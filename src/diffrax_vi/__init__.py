@@ -6,6 +6,7 @@ from ._adaptive import (
     ReversibleController as ReversibleController,
     ReversibleState as ReversibleState,
 )
+from ._adjoint import ReversibleAdjoint as ReversibleAdjoint
 from ._constraint import project_onto_constraints as project_onto_constraints
 from ._discrete import (
     AbstractDiscreteLagrangian as AbstractDiscreteLagrangian,

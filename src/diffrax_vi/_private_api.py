@@ -8,14 +8,21 @@ inside a solve.
 
 import diffrax as dfx
 import equinox.internal as eqxi
-from diffrax._integrate import (  # `diffeqsolve`'s own check of terms against solver.
-    _assert_term_compatible as assert_term_compatible,
+from diffrax._adjoint import (  # What a custom adjoint does as diffrax's own do.
+    _is_subsaveat as is_subsaveat,
+    _nondiff_solver_controller_state as nondiff_solver_controller_state,
+    _only_transpose_ys as only_transpose_ys,
+)
+from diffrax._integrate import (
+    _assert_term_compatible as assert_term_compatible,  # `diffeqsolve`'s own check.
+    _clip_to_end as clip_to_end,  # How diffrax's loop ends a step on t1.
 )
 
 # An implicit solver whose tolerances are left to an adaptive controller.
 from diffrax._root_finder import (
     use_stepsize_tol,
 )
+from diffrax._saveat import save_y  # The default SaveAt(fn=...).
 from diffrax._term import (  # What `diffeqsolve` hands solvers instead of our term.
     AdjointTerm,  # BacksolveAdjoint's backward solve.
     WrapTerm,  # Every solve.
@@ -28,6 +35,11 @@ __all__ = [
     "AdjointTerm",
     "assert_term_compatible",
     "backends_are_initialized",
+    "clip_to_end",
+    "is_subsaveat",
+    "nondiff_solver_controller_state",
+    "only_transpose_ys",
+    "save_y",
     "NoForwardingSolverMeta",
     "unvmap_any",
     "use_stepsize_tol",

@@ -1,0 +1,198 @@
+"""`ReversibleAdjoint`: gradients through solves, computed from states rebuilt by
+inverse steps, against diffrax's `RecursiveCheckpointAdjoint` (the derivative of the
+same discrete solve, from stored states)."""
+
+import diffrax as dfx
+import diffrax_vi as dvi
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+
+E = 0.6  # Kepler, eccentricity; period 2 pi
+KEPLER_Y0 = (
+    jnp.array([1 - E, 0.0]),
+    jnp.array([0.0, ((1 + E) / (1 - E)) ** 0.5]),
+)
+KEPLER = dvi.SeparableLagrangian(lambda t, q, args: -args / jnp.linalg.norm(q))
+H = 2 * jnp.pi / 200
+
+
+def _relative_error(a, b) -> float:
+    pairs = zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True)
+    return max(float(jnp.max(jnp.abs(x - y)) / jnp.max(jnp.abs(y))) for x, y in pairs)
+
+
+@eqx.filter_jit
+@eqx.filter_grad
+def _kepler_gradient(inputs, solver, adjoint, steps):
+    """d/d(y0, GM) of a scalar of the final state, after `steps` steps (traced, so
+    that one compiled solve serves every length up to 2e4)."""
+    y0, gm = inputs
+    explicit = isinstance(getattr(solver, "base", solver), dvi.StormerVerlet)
+    terms = dvi.separable_terms(KEPLER) if explicit else dvi.LagrangianTerm(KEPLER)
+    sol = dfx.diffeqsolve(
+        terms, solver, 0.0, steps * H, H, y0, gm, adjoint=adjoint, max_steps=20_000
+    )
+    q, p = sol.ys
+    return jnp.sum(q[-1] ** 2) + jnp.sum(jnp.sin(p[-1]))
+
+
+@pytest.mark.parametrize(
+    "solver",
+    [dvi.StormerVerlet(), dvi.MidpointVI(), dvi.Composition(dvi.StormerVerlet())],
+    ids=["StormerVerlet", "MidpointVI", "yoshida4"],
+)
+def test_kepler_gradients_equal_checkpointing(solver):
+    """Over 2000 steps (ten orbits) to 1e-8; Stormer-Verlet also over 2e4."""
+    inputs = (KEPLER_Y0, jnp.asarray(1.0))
+    lengths = (2000, 20_000) if isinstance(solver, dvi.StormerVerlet) else (2000,)
+    for steps, tolerance in zip(lengths, (1e-8, 1e-6)):
+        steps = jnp.asarray(steps)
+        ours = _kepler_gradient(inputs, solver, dvi.ReversibleAdjoint(), steps)
+        reference = _kepler_gradient(
+            inputs, solver, dfx.RecursiveCheckpointAdjoint(), steps
+        )
+        assert _relative_error(ours, reference) < tolerance, steps
+
+
+class _Pendulum(dvi.AbstractSeparableLagrangian):
+    gravity: jax.Array
+    mass: float = 1.0
+
+    def potential(self, t, q, args):
+        return self.gravity * q[1]
+
+
+def _circle(t, q, args):
+    return jnp.sum(q**2) - args**2
+
+
+@pytest.mark.parametrize(
+    "solver", [dvi.TrapezoidalVI(), dvi.MidpointVI()], ids=["Trapezoidal", "Midpoint"]
+)
+def test_constrained_gradients_reach_the_term_and_the_constraint(solver):
+    """The Cartesian pendulum (RATTLE / constrained midpoint): gradients with
+    respect to the Lagrangian's parameter (a leaf of the term), the constraint's
+    (`args`, the length) and y0, on an uneven StepTo grid with both ends saved."""
+    term = dvi.LagrangianTerm(_Pendulum(jnp.array(9.8)), constraint=_circle)
+    angle = 0.3
+    y0 = (
+        jnp.array([jnp.sin(angle), -jnp.cos(angle)]),
+        0.3 * jnp.array([jnp.cos(angle), jnp.sin(angle)]),
+    )
+    ts = jnp.concatenate([jnp.linspace(0, 1.5, 100), jnp.linspace(1.5, 3, 180)[1:]])
+
+    @eqx.filter_jit
+    @eqx.filter_grad
+    def gradient(inputs, adjoint):
+        term, y0, length = inputs
+        sol = dfx.diffeqsolve(
+            term,
+            solver,
+            0.0,
+            3.0,
+            None,
+            y0,
+            length,
+            stepsize_controller=dfx.StepTo(ts),
+            saveat=dfx.SaveAt(t0=True, t1=True),
+            adjoint=adjoint,
+        )
+        return sum(jnp.sum(jnp.sin(x)) for x in jax.tree.leaves(sol.ys))
+
+    inputs = (term, y0, jnp.asarray(1.0))
+    ours = gradient(inputs, dvi.ReversibleAdjoint())
+    reference = gradient(inputs, dfx.RecursiveCheckpointAdjoint())
+    assert abs(float(reference[0].lagrangian.gravity)) > 1e-3
+    assert _relative_error(ours, reference) < 1e-8
+
+
+def test_forward_results_are_the_plain_solve():
+    kwargs = dict(args=1.0, max_steps=500)
+    terms = dvi.separable_terms(KEPLER)
+    plain = dfx.diffeqsolve(
+        terms, dvi.StormerVerlet(), 0.0, 400 * H, H, KEPLER_Y0, **kwargs
+    )
+    ours = dfx.diffeqsolve(
+        terms,
+        dvi.StormerVerlet(),
+        0.0,
+        400 * H,
+        H,
+        KEPLER_Y0,
+        adjoint=dvi.ReversibleAdjoint(),
+        **kwargs,
+    )
+    for a, b in zip(jax.tree.leaves(plain.ys), jax.tree.leaves(ours.ys)):
+        assert jnp.array_equal(a, b)
+
+
+def _solve(solver, term=None, **kwargs):
+    term = dvi.LagrangianTerm(KEPLER) if term is None else term
+    return dfx.diffeqsolve(
+        term,
+        solver,
+        0.0,
+        1.0,
+        kwargs.pop("dt0", 0.1),
+        KEPLER_Y0,
+        1.0,
+        adjoint=dvi.ReversibleAdjoint(),
+        **kwargs,
+    )
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: _solve(dvi.LinearizedVI()), "needs a symmetric solver"),
+        (lambda: _solve(dfx.Tsit5()), "needs a symmetric solver"),
+        (
+            lambda: _solve(
+                dvi.MidpointVI(),
+                stepsize_controller=dfx.PIDController(rtol=1e-6, atol=1e-6),
+            ),
+            "PIDController",
+        ),
+        (
+            lambda: _solve(dvi.MidpointVI(), saveat=dfx.SaveAt(ts=[0.5, 1.0])),
+            "SaveAt",
+        ),
+        (
+            lambda: _solve(
+                dvi.MidpointVI(),
+                event=dfx.Event(lambda t, y, args, **kw: y[0][0]),
+            ),
+            "events",
+        ),
+        (
+            lambda: _solve(
+                dvi.MidpointVI(),
+                term=dvi.LagrangianTerm(KEPLER, force=lambda t, q, v, args: -0.1 * v),
+            ),
+            "not time-reversible",
+        ),
+    ],
+    ids=["linearized", "runge-kutta", "pid", "ts", "event", "friction"],
+)
+def test_what_it_cannot_do_is_refused_when_traced(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_an_asymmetric_tableau_is_refused():
+    """A VPRK tableau that is not symmetric (symplectic Euler's) has no inverse
+    step with -h."""
+    tableau = dvi.VPRKTableau(
+        a=np.array([[1.0]]),
+        a_bar=np.array([[0.0]]),
+        b=np.array([1.0]),
+        c=np.array([1.0]),
+        order=1,
+    )
+    assert not tableau.symmetric
+    with pytest.raises(ValueError, match="needs a symmetric solver"):
+        _solve(dvi.VPRK(tableau))
