@@ -70,8 +70,10 @@ ADJOINTS = {
 }
 
 
-def case(terms, solver, y0, args, h, steps):
-    """The forward solve and, per adjoint, the gradient of a scalar of its end."""
+def case(terms, solver, y0, args, h, steps, every=None):
+    """The forward solve and, per adjoint, the gradient of a scalar of its end
+    (`every`: ReversibleAdjoint's `checkpoint_every`)."""
+    adjoints = dict(ADJOINTS, Reversible=dvi.ReversibleAdjoint(every))
 
     def final(y0, args, adjoint):
         sol = dfx.diffeqsolve(
@@ -90,7 +92,7 @@ def case(terms, solver, y0, args, h, steps):
     forward = jax.jit(lambda y0, args: final(y0, args, ADJOINTS["Reversible"]))
     grads = {
         name: jax.jit(jax.grad(lambda y0, args, a=adjoint: final(y0, args, a), (0, 1)))
-        for name, adjoint in ADJOINTS.items()
+        for name, adjoint in adjoints.items()
     }
     return forward, grads
 
@@ -148,8 +150,8 @@ def relative_difference(a, b) -> float:
     return max(float(jnp.max(jnp.abs(x - y)) / jnp.max(jnp.abs(y))) for x, y in pairs)
 
 
-def accuracy(label, terms, solver, y0, args, h, steps):
-    _, grads = case(terms, solver, y0, args, h, steps)
+def accuracy(label, terms, solver, y0, args, h, steps, every=None):
+    _, grads = case(terms, solver, y0, args, h, steps, every)
     ours = grads["Reversible"](y0, args)
     reference = grads["RecursiveCheckpoint"](y0, args)
     difference = relative_difference(ours, reference)
@@ -229,15 +231,24 @@ def main():
         2000,
     )
     pendulum = dvi.scenes.double_pendulum()
-    for steps in (500, 1000, 2000, 4000):
+    for steps, every in (
+        (500, None),
+        (1000, None),
+        (2000, None),
+        (4000, None),
+        (8000, None),
+        (8000, 100),
+    ):
         accuracy(
-            f"double pendulum, MidpointVI, t = {steps * 0.01:g}",
+            f"double pendulum, MidpointVI, t = {steps * 0.01:g}"
+            + ("" if every is None else f", checkpoint_every={every}"),
             dvi.LagrangianTerm(pendulum.lagrangian),
             dvi.MidpointVI(),
             pendulum.y0,
             None,
             0.01,
             steps,
+            every,
         )
 
     def ratio(key):

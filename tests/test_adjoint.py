@@ -58,6 +58,19 @@ def test_kepler_gradients_equal_checkpointing(solver):
         assert _relative_error(ours, reference) < tolerance, steps
 
 
+def test_checkpoints_re_anchor_the_rebuilt_states():
+    inputs, steps = (KEPLER_Y0, jnp.asarray(1.0)), jnp.asarray(2000)
+    solver = dvi.StormerVerlet()
+    ours = _kepler_gradient(inputs, solver, dvi.ReversibleAdjoint(64), steps)
+    reference = _kepler_gradient(
+        inputs, solver, dfx.RecursiveCheckpointAdjoint(), steps
+    )
+    assert _relative_error(ours, reference) < 1e-8
+    for every in (0, -3, True):
+        with pytest.raises(ValueError, match="checkpoint_every"):
+            dvi.ReversibleAdjoint(every)
+
+
 class _Pendulum(dvi.AbstractSeparableLagrangian):
     gravity: jax.Array
     mass: float = 1.0

@@ -100,10 +100,30 @@ class ReversibleAdjoint(dfx.AbstractAdjoint):
     solves](../gradients.md) for measured errors); for chaotic motion over many
     Lyapunov times it is not, and `RecursiveCheckpointAdjoint` is the choice.
 
+    **Arguments:**
+
+    - `checkpoint_every`: `None` (the default) to rebuild every state by inverse
+        steps; or `k`, to re-anchor the rebuilt states on the forward solve's own
+        every `k` steps. The backward pass then first repeats the forward solve,
+        keeping every `k`-th state (memory: `max_steps / k` states), so the inverse
+        steps' errors grow over at most `k` steps: for chaotic problems.
+
     **Failures:** an inverse step that fails (its root finder, or a NaN) raises
     an `EquinoxRuntimeError` in the backward pass, as the gradient would be wrong.
     Unsupported settings raise a `ValueError` when traced, naming the alternative.
     """
+
+    checkpoint_every: int | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        every = self.checkpoint_every
+        if every is not None and (
+            isinstance(every, bool) or not isinstance(every, int) or every < 1
+        ):
+            raise ValueError(
+                "ReversibleAdjoint(checkpoint_every=...) must be None or an integer "
+                f"of at least 1; got {every!r}."
+            )
 
     def loop(
         self,
@@ -240,6 +260,25 @@ def _time_grid(controller, init_state, t1, num_steps, max_steps, args):
     return lax.fori_loop(0, num_steps, body, carry)[3]
 
 
+def _anchors(step, times, y0, diff_args, diff_terms, init_state, n, max_steps, every):
+    """The forward solve repeated, keeping the states at steps 0, k, 2k, ..."""
+    anchors = jtu.tree_map(
+        lambda x: jnp.zeros((max_steps // every + 1,) + x.shape, x.dtype), y0
+    )
+
+    def body(i, carry):
+        y, state, anchors = carry
+        j, offset = divmod(i, every)
+        anchors = jtu.tree_map(
+            lambda a, x: a.at[j].set(jnp.where(offset == 0, x, a[j])), anchors, y
+        )
+        y, (state, _) = step(times[i], times[i + 1], y, diff_args, diff_terms, state)
+        return y, state, anchors
+
+    carry = (y0, init_state.solver_state, anchors)
+    return lax.fori_loop(0, n, body, carry)[2]
+
+
 def _materialise(x, cotangent):
     if cotangent is None and eqx.is_inexact_array(x):
         return jnp.zeros_like(x)
@@ -266,7 +305,7 @@ def _loop_reversible_bwd(
     init_state,
     progress_meter,
 ):
-    del perturbed, self, event, t0, dt0, progress_meter
+    del perturbed, event, t0, dt0, progress_meter
     y_final, ys, solver_state, num_steps = residuals
     grad_final_state, _ = grad_final_state__aux_stats
     grad_ys = jtu.tree_map(_materialise, ys, grad_final_state.save_state.ys)
@@ -296,6 +335,11 @@ def _loop_reversible_bwd(
         y_prev, (back_state, back_result) = step(
             t_end, t_start, y, diff_args, diff_terms, back_state
         )
+        if anchors is not None:
+            i, stored = divmod(k - 1, every)
+            y_prev = jtu.tree_map(
+                lambda a, x: jnp.where(stored == 0, a[i], x), anchors, y_prev
+            )
         _, vjp, (fwd_state, result) = jax.vjp(
             lambda y_, a_, t_: step(t_start, t_end, y_, a_, t_, fwd_state),
             y_prev,
@@ -310,6 +354,20 @@ def _loop_reversible_bwd(
         a_args, a_terms = add(a_args, d_args), add(a_terms, d_terms)
         return k - 1, y_prev, d_y, a_args, a_terms, back_state, fwd_state, ok
 
+    every = self.checkpoint_every
+    anchors = None
+    if every is not None:
+        anchors = _anchors(
+            step,
+            times,
+            y0,
+            diff_args,
+            diff_terms,
+            init_state,
+            num_steps,
+            max_steps,
+            every,
+        )
     last = jnp.maximum(num_steps - 1, 0)
     back_state = solver.init(terms, times[num_steps], times[last], y_final, args)
     carry = (
