@@ -171,6 +171,15 @@ def _solve(solver, term=None, **kwargs):
             "PIDController",
         ),
         (
+            lambda: _solve(
+                dvi.MidpointVI(),
+                stepsize_controller=dvi.ReversibleController(
+                    dvi.PotentialMonitor(KEPLER)
+                ),
+            ),
+            "ReversibleController yet",
+        ),
+        (
             lambda: _solve(dvi.MidpointVI(), saveat=dfx.SaveAt(ts=[0.5, 1.0])),
             "SaveAt",
         ),
@@ -189,7 +198,7 @@ def _solve(solver, term=None, **kwargs):
             "not time-reversible",
         ),
     ],
-    ids=["linearized", "runge-kutta", "pid", "ts", "event", "friction"],
+    ids=["linearized", "runge-kutta", "pid", "reversible", "ts", "event", "friction"],
 )
 def test_what_it_cannot_do_is_refused_when_traced(make, match):
     with pytest.raises(ValueError, match=match):

@@ -23,6 +23,7 @@ import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 
+from ._adaptive import ReversibleController
 from ._force import depends_on_velocity
 from ._private_api import (
     clip_to_end,
@@ -151,6 +152,13 @@ class ReversibleAdjoint(dfx.AbstractAdjoint):
                 "StormerVerlet, MidpointVI, TrapezoidalVI, GaussVPRK, LobattoVPRK "
                 "or a Composition of them; for other solvers (LinearizedVI, "
                 "Runge-Kutta), diffrax.RecursiveCheckpointAdjoint."
+            )
+        if isinstance(stepsize_controller, ReversibleController):
+            raise ValueError(
+                "ReversibleAdjoint does not support ReversibleController yet: its "
+                "step sizes depend on the state through the monitor, whose "
+                "derivative the backward pass does not take. Use fixed steps "
+                "(ConstantStepSize, StepTo), or diffrax.RecursiveCheckpointAdjoint."
             )
         if not isinstance(stepsize_controller, (dfx.ConstantStepSize, dfx.StepTo)):
             raise ValueError(
