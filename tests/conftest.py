@@ -85,6 +85,8 @@ SLOW = (
     # The reversible adjoint through a constrained step: RATTLE's case runs by
     # default, MidpointVI's unconstrained case on Kepler.
     "test_adjoint.py::test_constrained_gradients_reach_the_term_and_the_constraint[Mid",
+    # A composition takes Stormer-Verlet steps, whose reversal runs by default.
+    "test_adjoint.py::test_kepler_gradients_equal_checkpointing[yoshida4",
 )
 
 

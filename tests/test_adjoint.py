@@ -221,10 +221,10 @@ def test_an_asymmetric_tableau_is_refused():
 
 
 def test_gradients_on_a_lie_group():
-    """The heavy top on SO(3) x R^3 under the Lie midpoint rule: gradients with
-    respect to its inertia and weight (leaves of the term) and the initial body
-    momentum, over 200 steps."""
-    scene = dvi.scenes.heavy_top()
+    """The free rigid body on SO(3) under the Lie midpoint rule: gradients with
+    respect to its inertia (a leaf of the term) and the initial body momentum,
+    over 200 steps."""
+    scene = dvi.scenes.free_rigid_body()
 
     @eqx.filter_jit
     @eqx.filter_grad
