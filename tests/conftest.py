@@ -1,3 +1,5 @@
+import gc
+
 import jax
 import pytest
 
@@ -5,6 +7,17 @@ import pytest
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_programs():
+    """Drop JAX's compiled programs after each test file. Each one holds memory
+    mappings, and a worker that keeps hundreds of files' worth reaches the kernel's
+    limit (vm.max_map_count, 65530): XLA's compiler then fails to allocate and the
+    worker dies with a segmentation fault (test_study.py alone leaves 10 000)."""
+    yield
+    jax.clear_caches()
+    gc.collect()
 
 
 @pytest.fixture
