@@ -23,18 +23,10 @@ import lineax as lx
 from jaxtyping import Array, Float, PyTree
 
 from ._custom_types import Args, P, Q, RealScalarLike
-from ._lagrangian import (
-    AbstractLagrangian,
-    AbstractQuadraticLagrangian,
-    AbstractSeparableLagrangian,
-    legendre_residual,
-    momentum,
-    velocity,
-)
+from ._lagrangian import legendre_residual, momentum, velocity, velocity_is_explicit
 from ._misc import all_finite, split_state, state_dtype
 from ._nonlinear import (
     Newton,
-    NEWTON_DENSE_MAX,
     newton_tolerance,
     scaled_norm,
     singular_threshold,
@@ -172,7 +164,7 @@ def project_momentum(
     def moved(mu):
         return jtu.tree_map(lambda a, b: a + b, p, impulse(mu))
 
-    if _velocity_is_explicit(term.lagrangian, p):
+    if velocity_is_explicit(term.lagrangian, p):
 
         def residual(mu):
             v, _ = velocity(term.lagrangian, t, (q, moved(mu)), args)
@@ -192,18 +184,6 @@ def project_momentum(
         mu = solved.value[1]
     kick = impulse(mu)
     return Projected(jtu.tree_map(lambda a, b: a + b, p, kick), kick, solved.result)
-
-
-def _velocity_is_explicit(lagrangian: AbstractLagrangian, p: P) -> bool:
-    """Whether `velocity` computes $v(q, p)$ without a root finder, by differentiable
-    arithmetic: a separable Lagrangian, or one marked quadratic in $v$ of at most
-    16 degrees of freedom (one unrolled elimination)."""
-    if isinstance(lagrangian, AbstractSeparableLagrangian):
-        return True
-    n = sum(jnp.size(x) for x in jtu.tree_leaves(p))
-    return isinstance(lagrangian, AbstractQuadraticLagrangian) and (
-        n <= NEWTON_DENSE_MAX
-    )
 
 
 def project_onto_constraints(

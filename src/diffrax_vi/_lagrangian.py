@@ -533,7 +533,7 @@ def velocity(
     n = sum(jnp.size(x) for x in jtu.tree_leaves(p))
     dtype = state_dtype(p)
     zeros = jtu.tree_map(jnp.zeros_like, p)
-    if isinstance(lagrangian, AbstractQuadraticLagrangian) and n <= NEWTON_DENSE_MAX:
+    if velocity_is_explicit(lagrangian, p):
         # `dL/dv` is affine in `v`: one solve with `M = d2L/dv2` from v = 0, by
         # unrolled elimination. Differentiated (RATTLE's projection differentiates
         # the velocity), lineax's solve would check its tangent solve and raise on
@@ -594,6 +594,19 @@ def velocity(
         else:
             v, result = newton(guess)
     return v, result_or_nonfinite(v, p, result)
+
+
+def velocity_is_explicit(lagrangian: AbstractLagrangian, p: P) -> bool:
+    """Whether `velocity` computes $v(q, p)$ without a root finder, by
+    differentiable arithmetic: a separable Lagrangian ($M^{-1}p$), or one marked
+    quadratic in $v$ of at most `NEWTON_DENSE_MAX` degrees of freedom (one unrolled
+    elimination)."""
+    if isinstance(lagrangian, AbstractSeparableLagrangian):
+        return True
+    n = sum(jnp.size(x) for x in jtu.tree_leaves(p))
+    return isinstance(lagrangian, AbstractQuadraticLagrangian) and (
+        n <= NEWTON_DENSE_MAX
+    )
 
 
 def result_or_nonfinite(v: V, p: P, result: dfx.RESULTS) -> dfx.RESULTS:
