@@ -246,7 +246,18 @@ def test_reversible_controller_fails_a_zero_step_and_refuses_a_non_symmetric_sol
     # max_steps of zero-length ones.
     with pytest.raises(eqx.EquinoxRuntimeError, match="Nonfinite"):
         solve(term, dvi.MidpointVI(), 0.0)
-    for solver in (dfx.Euler(), dfx.HalfSolver(dvi.MidpointVI())):
+    symplectic_euler = dvi.VPRKTableau(
+        a=np.array([[1.0]]),
+        a_bar=np.array([[0.0]]),
+        b=np.array([1.0]),
+        c=np.array([1.0]),
+        order=1,
+    )
+    for solver in (
+        dfx.Euler(),
+        dfx.HalfSolver(dvi.MidpointVI()),
+        dvi.VPRK(symplectic_euler),
+    ):
         with pytest.raises(ValueError, match="only with a symmetric solver"):
             solve(term, solver, 0.1)
     pair = (dfx.ODETerm(lambda t, p, args: p), dfx.ODETerm(lambda t, q, args: -q))

@@ -28,7 +28,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 from ._custom_types import Args, RealScalarLike
 from ._lagrangian import AbstractLagrangian, AbstractSeparableLagrangian
 from ._private_api import WrapTerm
-from ._solver.base import AbstractSymmetricSolver
+from ._solver.vprk import is_symmetric
 
 
 def _unwrap(terms: PyTree) -> PyTree:
@@ -81,13 +81,12 @@ def _check_symmetric(solver) -> None:
     controller, through wrappers that take its steps unchanged) is symmetric."""
     while getattr(solver, "steps_as_wrapped", False):
         solver = solver.solver
-    if isinstance(solver, dfx.AbstractSolver) and not isinstance(
-        solver, AbstractSymmetricSolver
-    ):
+    if isinstance(solver, dfx.AbstractSolver) and not is_symmetric(solver):
         raise ValueError(
             "ReversibleController keeps a solve time-reversible only with a "
             f"symmetric solver, and {type(solver).__name__} is not one (a wrapper "
-            "such as diffrax.HalfSolver is not either). Use StormerVerlet, "
+            "such as diffrax.HalfSolver is not either, nor a VPRK whose tableau is "
+            "not symmetric). Use StormerVerlet, "
             "MidpointVI, TrapezoidalVI, a symmetric VPRK or a Composition; for "
             "other solvers, diffrax.PIDController."
         )
@@ -249,8 +248,8 @@ class ReversibleController(dfx.AbstractStepSizeController):
                 & jnp.isfinite(state.dt0),
             ),
         )
-        h, _, ok = self._step(state)
-        return self._clip(t0, t0 + h), eqx.tree_at(lambda s: s.ok, state, ok)
+        t_next, ok = self.next_time(state, t0)
+        return t_next, eqx.tree_at(lambda s: s.ok, state, ok)
 
     def adapt_step_size(
         self,
@@ -281,11 +280,55 @@ class ReversibleController(dfx.AbstractStepSizeController):
             state,
             (jnp.where(ok, w, state.density), jnp.where(ok, rate, 0), ok),
         )
-        h, _, ok = self._step(state)
+        t_next, ok = self.next_time(state, t1)
         state = eqx.tree_at(lambda s: s.ok, state, ok)
         result = dfx.RESULTS.where(ok, dfx.RESULTS.successful, dfx.RESULTS.nonfinite)
-        t_next = self._clip(t1, t1 + h)
         return jnp.array(True), t1, t_next, jnp.array(False), state, result
+
+    # The step sequence as a function of the state, for the reversible adjoint, which
+    # rebuilds the controller's state at each node instead of storing it and
+    # differentiates through it.
+
+    def next_time(
+        self, state: ReversibleState, t: RealScalarLike
+    ) -> tuple[Array, Bool[Array, ""]]:
+        """The end of the step that starts at node `t` in `state` (before diffrax
+        clips it to `t1`), and whether the step density is positive and finite."""
+        h, _, ok = self._step(state)
+        return self._clip(t, t + h), ok
+
+    def node(
+        self,
+        terms: PyTree[dfx.AbstractTerm],
+        func: Callable,
+        t: RealScalarLike,
+        y: PyTree,
+        args: Args,
+        density: Array,
+        dt0: Array,
+    ) -> ReversibleState:
+        """The state the controller holds at node `(t, y)` with step density
+        `density`: its rate computed afresh from `terms` (through `func`, the
+        solver's vector field), so that it depends on them differentiably."""
+        raw = _unwrap(terms)
+        state = ReversibleState(
+            density,
+            jnp.zeros_like(dt0),
+            dt0,
+            jnp.array(True),
+            lambda t, y, args: func(raw, t, y, args),
+        )
+        rate, ok = self._rate(state, t, y, args)
+        return eqx.tree_at(lambda s: (s.rate, s.ok), state, (rate, ok))
+
+    def density_before(
+        self, state: ReversibleState, t: RealScalarLike, y: PyTree, args: Args
+    ) -> tuple[Array, Bool[Array, ""]]:
+        r"""The density $w_n$ at the node `(t, y)` before the node that `state`
+        holds: the density update run backwards,
+        $w_n = w_{n+1} - \tfrac{h_0}{2}(G(y_{n+1}) + G(y_n))$."""
+        rate, ok = self._rate(state, t, y, args)
+        return state.density - 0.5 * state.dt0 * (state.rate + rate), ok
 
 
 class PotentialMonitor(eqx.Module):

@@ -23,7 +23,7 @@ import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 
-from ._adaptive import ReversibleController
+from ._adaptive import ReversibleController, ReversibleState
 from ._force import depends_on_velocity
 from ._private_api import (
     clip_to_end,
@@ -33,9 +33,7 @@ from ._private_api import (
     save_y,
     WrapTerm,
 )
-from ._solver.base import AbstractSymmetricSolver
-from ._solver.composition import Composition
-from ._solver.vprk import AbstractVPRK
+from ._solver.vprk import is_symmetric
 from ._term import LagrangianTerm
 
 
@@ -45,16 +43,6 @@ REBUILD_FAILED = (
     "NaN): the gradient would be wrong. Use diffrax.RecursiveCheckpointAdjoint for "
     "this solve, or smaller steps."
 )
-
-
-def _symmetric(solver: dfx.AbstractSolver) -> bool:
-    """Whether `solver` is a symmetric method of this package (a VPRK whose tableau
-    is symmetric; a composition of such a base)."""
-    if isinstance(solver, Composition):
-        return _symmetric(solver.base)
-    if isinstance(solver, AbstractVPRK):
-        return bool(solver.tableau.symmetric)
-    return isinstance(solver, AbstractSymmetricSolver)
 
 
 def _check_forces(terms, t0, y0, args) -> None:
@@ -82,16 +70,21 @@ def _check_forces(terms, t0, y0, args) -> None:
 class ReversibleAdjoint(dfx.AbstractAdjoint):
     r"""Backpropagate through `diffrax.diffeqsolve` by stepping backwards: the
     states of the forward solve are rebuilt by inverse steps of the symmetric solver,
-    so memory does not grow with the number of steps (one stored time per step, no
-    stored states).
+    so memory does not grow with the number of steps (one stored time per step,
+    recorded by the forward solve; no stored states).
 
     Pass it as `adjoint=` with a symmetric solver of this package
     ([`diffrax_vi.StormerVerlet`][], [`diffrax_vi.MidpointVI`][],
     [`diffrax_vi.TrapezoidalVI`][], a symmetric [`diffrax_vi.VPRK`][], a
     [`diffrax_vi.Composition`][]) at fixed steps (`diffrax.ConstantStepSize`,
-    `diffrax.StepTo`) and `SaveAt(t1=True)` (optionally with `t0=True`). Gradients
-    flow to `y0`, `args` and every array of the terms (the Lagrangian's
-    parameters, a force's, a constraint's).
+    `diffrax.StepTo`) or reversible adaptive ones
+    ([`diffrax_vi.ReversibleController`][]), saving at `t0`, `t1` and `ts`.
+    Gradients flow to `y0`, `args`, every array of the terms (the Lagrangian's
+    parameters, a force's, a constraint's) and of a `ReversibleController` (its
+    monitor's parameters, its initial `density`). Under `ReversibleController` the
+    step sizes depend on the state, and the gradient includes that dependence, as
+    diffrax's own adjoints do; the step density is rebuilt backwards with the
+    states.
 
     The forward solve is the plain solve. The gradient is the derivative of the
     discrete solve (as `diffrax.RecursiveCheckpointAdjoint` computes it), evaluated at
@@ -145,7 +138,7 @@ class ReversibleAdjoint(dfx.AbstractAdjoint):
         passed_controller_state,
         progress_meter,
     ):
-        if not _symmetric(solver):
+        if not is_symmetric(solver):
             raise ValueError(
                 "ReversibleAdjoint needs a symmetric solver, whose step with -h "
                 f"inverts its step with h; {type(solver).__name__} is not one. Use "
@@ -153,20 +146,18 @@ class ReversibleAdjoint(dfx.AbstractAdjoint):
                 "or a Composition of them; for other solvers (LinearizedVI, "
                 "Runge-Kutta), diffrax.RecursiveCheckpointAdjoint."
             )
-        if isinstance(stepsize_controller, ReversibleController):
-            raise ValueError(
-                "ReversibleAdjoint does not support ReversibleController yet: its "
-                "step sizes depend on the state through the monitor, whose "
-                "derivative the backward pass does not take. Use fixed steps "
-                "(ConstantStepSize, StepTo), or diffrax.RecursiveCheckpointAdjoint."
-            )
-        if not isinstance(stepsize_controller, (dfx.ConstantStepSize, dfx.StepTo)):
+        if not isinstance(
+            stepsize_controller,
+            (dfx.ConstantStepSize, dfx.StepTo, ReversibleController),
+        ):
             raise ValueError(
                 "ReversibleAdjoint steps back along the forward time grid, which "
-                "it rebuilds for diffrax.ConstantStepSize and diffrax.StepTo; got "
+                "it rebuilds for diffrax.ConstantStepSize, diffrax.StepTo and "
+                "ReversibleController; got "
                 f"{type(stepsize_controller).__name__}. An error-controlled "
                 "(PIDController) grid depends on rejected steps and cannot be "
-                "rebuilt: use fixed steps, or diffrax.RecursiveCheckpointAdjoint."
+                "rebuilt: use fixed steps, ReversibleController, or "
+                "diffrax.RecursiveCheckpointAdjoint."
             )
         if event is not None:
             raise ValueError(
@@ -181,16 +172,13 @@ class ReversibleAdjoint(dfx.AbstractAdjoint):
         subs = saveat.subs
         if (
             jtu.tree_structure(subs, is_leaf=is_subsaveat) != jtu.tree_structure(0)
-            or not subs.t1
-            or subs.ts is not None
             or subs.steps
             or saveat.dense
             or subs.fn is not save_y
         ):
             raise ValueError(
-                "ReversibleAdjoint supports SaveAt(t1=True), with or without "
-                "t0=True (save more states by solving from one to the next). For "
-                "SaveAt(ts=...), steps=True, dense=True, fn=... or subs=..., use "
+                "ReversibleAdjoint supports SaveAt with t0, t1 and ts. For "
+                "SaveAt(steps=True), dense=True, fn=... or subs=..., use "
                 "diffrax.RecursiveCheckpointAdjoint."
             )
         _check_forces(terms, t0, init_state.y, args)
@@ -199,11 +187,15 @@ class ReversibleAdjoint(dfx.AbstractAdjoint):
         init_state = nondiff_solver_controller_state(
             self, init_state, passed_solver_state, passed_controller_state
         )
-        final_state, aux_stats = _loop_reversible(
-            (y, args, terms),
+        # The first step's end depends on y0 under ReversibleController; the
+        # backward pass recomputes it from y0 and differentiates it there.
+        init_state = eqx.tree_at(
+            lambda s: s.tnext, init_state, replace_fn=lax.stop_gradient
+        )
+        final_state, aux_stats, _ = _loop_reversible(
+            (y, args, terms, stepsize_controller),
             self=self,
             solver=solver,
-            stepsize_controller=stepsize_controller,
             event=event,
             saveat=saveat,
             t0=t0,
@@ -217,74 +209,91 @@ class ReversibleAdjoint(dfx.AbstractAdjoint):
         return only_transpose_ys(final_state), aux_stats
 
 
+class _Recorder(dfx.AbstractStepSizeController):
+    """The steps of `controller`, unchanged, with the end of each written into a
+    buffer of `max_steps + 1` times: the forward solve's time grid, along which the
+    backward pass steps back."""
+
+    controller: dfx.AbstractStepSizeController
+
+    def wrap(self, direction):
+        return self
+
+    def init(self, *args, **kwargs):
+        raise NotImplementedError("diffeqsolve initialises the recorded controller")
+
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, order, state):
+        inner, times, count = state
+        keep, tprev, tnext, jump, inner, result = self.controller.adapt_step_size(
+            t0, t1, y0, y1_candidate, args, y_error, order, inner
+        )
+        times = times.at[count + 1].set(t1)
+        return keep, tprev, tnext, jump, (inner, times, count + 1), result
+
+
+_is_none = lambda x: x is None
+
+
 @eqx.filter_custom_vjp
-def _loop_reversible(y__args__terms, *, self, throw, init_state, **kwargs):
+def _loop_reversible(vjp_arg, *, self, throw, init_state, max_steps, **kwargs):
     del throw
-    y, args, terms = y__args__terms
-    init_state = eqx.tree_at(lambda s: s.y, init_state, y)
-    return self._loop(
+    y, args, terms, controller = vjp_arg
+    times = jnp.zeros(max_steps + 1, jnp.result_type(init_state.tprev))
+    recording = (
+        init_state.controller_state,
+        times.at[0].set(init_state.tprev),
+        jnp.array(0),
+    )
+    init_state = eqx.tree_at(
+        lambda s: (s.y, s.controller_state),
+        init_state,
+        (y, recording),
+        is_leaf=_is_none,
+    )
+    final_state, aux_stats = self._loop(
         args=args,
         terms=terms,
+        stepsize_controller=_Recorder(controller),
         init_state=init_state,
+        max_steps=max_steps,
         inner_while_loop=ft.partial(eqxi.while_loop, kind="lax"),
         outer_while_loop=ft.partial(eqxi.while_loop, kind="lax"),
         **kwargs,
     )
+    inner, times, _ = final_state.controller_state
+    final_state = eqx.tree_at(
+        lambda s: s.controller_state, final_state, inner, is_leaf=_is_none
+    )
+    return final_state, aux_stats, times
 
 
 @_loop_reversible.def_fwd
-def _loop_reversible_fwd(perturbed, y__args__terms, **kwargs):
+def _loop_reversible_fwd(perturbed, vjp_arg, **kwargs):
     del perturbed
-    final_state, aux_stats = _loop_reversible(y__args__terms, **kwargs)
+    final_state, aux_stats, times = _loop_reversible(vjp_arg, **kwargs)
+    controller_state = final_state.controller_state
+    density = (
+        controller_state.density
+        if isinstance(controller_state, ReversibleState)
+        else jnp.zeros(())
+    )
     residuals = (
         final_state.y,
+        density,
         final_state.save_state.ys,
         final_state.solver_state,
         final_state.num_steps,
+        times,
     )
-    return (final_state, aux_stats), residuals
+    return (final_state, aux_stats, times), residuals
 
 
-def _time_grid(controller, init_state, t1, num_steps, max_steps, args):
-    """The forward solve's step times `t_0 ... t_N` (in a buffer of `max_steps + 1`),
-    made by the same controller calls and clipping as diffrax's loop."""
-    t1_clip_floor = t1
+def _clip_floor(t1):
+    """`t1` less 100 ulps: where diffrax's loop rounds a step's end to `t1`."""
+    floor = t1
     for _ in range(100):
-        t1_clip_floor = eqxi.prevbefore(t1_clip_floor)
-    times = jnp.zeros(max_steps + 1, jnp.result_type(init_state.tprev))
-    times = times.at[0].set(init_state.tprev)
-
-    def body(i, carry):
-        tprev, tnext, controller_state, times = carry
-        times = times.at[i + 1].set(tnext)
-        keep, tprev, tnext, _, controller_state, _ = controller.adapt_step_size(
-            tprev, tnext, None, None, args, None, None, controller_state
-        )
-        tprev = jnp.minimum(tprev, t1)
-        tnext = clip_to_end(tprev, tnext, t1, t1_clip_floor, keep)
-        return tprev, tnext, controller_state, times
-
-    carry = (init_state.tprev, init_state.tnext, init_state.controller_state, times)
-    return lax.fori_loop(0, num_steps, body, carry)[3]
-
-
-def _anchors(step, times, y0, diff_args, diff_terms, init_state, n, max_steps, every):
-    """The forward solve repeated, keeping the states at steps 0, k, 2k, ..."""
-    anchors = jtu.tree_map(
-        lambda x: jnp.zeros((max_steps // every + 1,) + x.shape, x.dtype), y0
-    )
-
-    def body(i, carry):
-        y, state, anchors = carry
-        j, offset = divmod(i, every)
-        anchors = jtu.tree_map(
-            lambda a, x: a.at[j].set(jnp.where(offset == 0, x, a[j])), anchors, y
-        )
-        y, (state, _) = step(times[i], times[i + 1], y, diff_args, diff_terms, state)
-        return y, state, anchors
-
-    carry = (y0, init_state.solver_state, anchors)
-    return lax.fori_loop(0, n, body, carry)[2]
+        floor = eqxi.prevbefore(floor)
+    return floor
 
 
 def _materialise(x, cotangent):
@@ -296,13 +305,12 @@ def _materialise(x, cotangent):
 @_loop_reversible.def_bwd
 def _loop_reversible_bwd(
     residuals,
-    grad_final_state__aux_stats,
+    grad_out,
     perturbed,
-    y__args__terms,
+    vjp_arg,
     *,
     self,
     solver,
-    stepsize_controller,
     event,
     saveat,
     t0,
@@ -314,88 +322,188 @@ def _loop_reversible_bwd(
     progress_meter,
 ):
     del perturbed, event, t0, dt0, progress_meter
-    y_final, ys, solver_state, num_steps = residuals
-    grad_final_state, _ = grad_final_state__aux_stats
-    grad_ys = jtu.tree_map(_materialise, ys, grad_final_state.save_state.ys)
-    y0, args, terms = y__args__terms
+    y_final, w_final, ys, solver_state, num_steps, times = residuals
+    grad_ys = jtu.tree_map(_materialise, ys, grad_out[0].save_state.ys)
+    y0, args, terms, controller = vjp_arg
     diff_args, nondiff_args = eqx.partition(args, eqx.is_inexact_array)
     diff_terms, nondiff_terms = eqx.partition(terms, eqx.is_inexact_array)
-    times = _time_grid(stepsize_controller, init_state, t1, num_steps, max_steps, args)
+    diff_ctrl, nondiff_ctrl = eqx.partition(controller, eqx.is_inexact_array)
+    reversible = isinstance(controller, ReversibleController)
+    if reversible:
+        dt0 = init_state.controller_state.dt0
+    floor = _clip_floor(t1)
+    subs = saveat.subs
+    ts = subs.ts
 
     # Every step is taken as after a jump: what a solver caches from its last step
     # (the force at its end, the first kick of the next step) is recomputed from
     # the state the step starts from, through which it is then differentiated.
-    def step(t_start, t_end, y, d_args, d_terms, state):
-        step_args = eqx.combine(d_args, nondiff_args)
-        step_terms = eqx.combine(d_terms, nondiff_terms)
-        y_next, _, _, state, result = solver.step(
-            step_terms, t_start, t_end, y, step_args, state, True
+    def step(t_start, t_end, y, args, terms, state):
+        y_next, _, dense, state, result = solver.step(
+            terms, t_start, t_end, y, args, state, True
         )
-        return y_next, (state, result)
+        return y_next, dense, state, result
+
+    # Step k of the forward solve (from times[k - 1]) as a function of what it
+    # depends on. At fixed steps that is the state `y`, the step's ends being fixed
+    # times. Under ReversibleController it is `(t, y, w)`: the step's size follows
+    # the state and the step density `w`, and the step's end and the next density
+    # are outputs of the step. The interpolant between the step's ends is an output
+    # too when SaveAt(ts=...) saves from it.
+    def advance(k, ext, d_args, d_terms, d_ctrl, state):
+        args = eqx.combine(d_args, nondiff_args)
+        terms = eqx.combine(d_terms, nondiff_terms)
+        if reversible:
+            t, y, w = ext
+            ctrl = eqx.combine(d_ctrl, nondiff_ctrl)
+            node = ctrl.node(terms, solver.func, t, y, args, w, dt0)
+            t_next, _ = ctrl.next_time(node, t)
+            t_next = clip_to_end(t, t_next, t1, floor, True)
+        else:
+            t, y, t_next = times[k - 1], ext, times[k]
+        y_next, dense, state, result = step(t, t_next, y, args, terms, state)
+        if reversible:
+            node = ctrl.adapt_step_size(t, t_next, y, y_next, args, None, 0, node)
+            node = node[4]
+            result = dfx.RESULTS.where(node.ok, result, dfx.RESULTS.nonfinite)
+            ext = (t_next, y_next, node.density)
+        else:
+            ext = y_next
+        interp = None
+        if ts is not None:
+            interp = solver.interpolation_cls(t0=t, t1=t_next, **dense)
+        return (ext, interp), (state, result)
+
+    # Step k undone: the state at times[k - 1] rebuilt from the one at times[k].
+    def retreat(k, ext, state):
+        t, t_next = times[k - 1], times[k]
+        y_next = ext[1] if reversible else ext
+        y, _, state, result = step(t_next, t, y_next, args, terms, state)
+        if not reversible:
+            return y, state, result
+        node = controller.node(terms, solver.func, t_next, y_next, args, ext[2], dt0)
+        w, ok = controller.density_before(node, t, y, args)
+        ok = ok & node.ok & (w > 0)
+        return (t, y, w), state, dfx.RESULTS.where(ok, result, dfx.RESULTS.nonfinite)
+
+    # The cotangent of step k's interpolant from the states it saved (the
+    # SaveAt(ts=...) times in (times[k - 1], times[k]], and t0 too for the first).
+    offset = 1 if subs.t0 else 0
+
+    def saved(k, interp):
+        def add(j, acc):
+            _, vjp = jax.vjp(lambda i: i.evaluate(ts[j]), interp)
+            g = jtu.tree_map(lambda gy: gy[offset + j], grad_ys)
+            return jtu.tree_map(jnp.add, acc, vjp(g)[0])
+
+        after = jnp.searchsorted(ts, times[k - 1], side="right")
+        first = jnp.where(k == 1, 0, after)
+        last = jnp.searchsorted(ts, times[k], side="right")
+        return lax.fori_loop(first, last, add, jtu.tree_map(jnp.zeros_like, interp))
 
     # Two sequences of solver states, each guessing its root finder's unknowns from
     # its last step: the inverse steps', and the repeated forward steps' (taken in
     # reverse order). The unknowns of a step and of its inverse need not agree (a
     # multiplier changes sign with h), so neither can guess for the other.
     def body(carry):
-        k, y, a_y, a_args, a_terms, back_state, fwd_state, ok = carry
-        t_start, t_end = times[k - 1], times[k]
-        y_prev, (back_state, back_result) = step(
-            t_end, t_start, y, diff_args, diff_terms, back_state
-        )
+        k, ext, a_ext, a_args, a_terms, a_ctrl, back_state, fwd_state, ok = carry
+        ext_prev, back_state, back_result = retreat(k, ext, back_state)
         if anchors is not None:
             i, stored = divmod(k - 1, every)
-            y_prev = jtu.tree_map(
-                lambda a, x: jnp.where(stored == 0, a[i], x), anchors, y_prev
+            ext_prev = jtu.tree_map(
+                lambda a, x: jnp.where(stored == 0, a[i], x), anchors, ext_prev
             )
-        _, vjp, (fwd_state, result) = jax.vjp(
-            lambda y_, a_, t_: step(t_start, t_end, y_, a_, t_, fwd_state),
-            y_prev,
+        (_, interp), vjp, (fwd_state, result) = jax.vjp(
+            lambda e, a, tr, c: advance(k, e, a, tr, c, fwd_state),
+            ext_prev,
             diff_args,
             diff_terms,
+            diff_ctrl,
             has_aux=True,
         )
-        d_y, d_args, d_terms = vjp(a_y)
+        a_interp = None if ts is None else saved(k, interp)
+        a_ext, d_args, d_terms, d_ctrl = vjp((a_ext, a_interp))
         ok = ok & (back_result == dfx.RESULTS.successful)
         ok = ok & (result == dfx.RESULTS.successful)
         add = lambda a, b: jtu.tree_map(jnp.add, a, b)
-        a_args, a_terms = add(a_args, d_args), add(a_terms, d_terms)
-        return k - 1, y_prev, d_y, a_args, a_terms, back_state, fwd_state, ok
+        a_args, a_terms, a_ctrl = add(
+            (a_args, a_terms, a_ctrl), (d_args, d_terms, d_ctrl)
+        )
+        return (
+            k - 1,
+            ext_prev,
+            a_ext,
+            a_args,
+            a_terms,
+            a_ctrl,
+            back_state,
+            fwd_state,
+            ok,
+        )
 
+    if subs.t1:
+        a_y = jtu.tree_map(lambda g: g[-1], grad_ys)
+    else:
+        a_y = jtu.tree_map(jnp.zeros_like, y_final)
+    if reversible:
+        zero = jnp.zeros((), w_final.dtype)
+        ext, a_ext = (times[num_steps], y_final, w_final), (zero, a_y, zero)
+        ext0 = (times[0], y0, init_state.controller_state.density)
+    else:
+        ext, a_ext, ext0 = y_final, a_y, y0
     every = self.checkpoint_every
     anchors = None
     if every is not None:
         anchors = _anchors(
-            step,
-            times,
-            y0,
-            diff_args,
-            diff_terms,
-            init_state,
+            lambda k, e, s: advance(k, e, diff_args, diff_terms, diff_ctrl, s),
+            ext0,
+            init_state.solver_state,
             num_steps,
             max_steps,
             every,
         )
     last = jnp.maximum(num_steps - 1, 0)
     back_state = solver.init(terms, times[num_steps], times[last], y_final, args)
+    zeros = ft.partial(jtu.tree_map, jnp.zeros_like)
     carry = (
         num_steps,
-        y_final,
-        jtu.tree_map(lambda g: g[-1], grad_ys),
-        jtu.tree_map(jnp.zeros_like, diff_args),
-        jtu.tree_map(jnp.zeros_like, diff_terms),
+        ext,
+        a_ext,
+        zeros(diff_args),
+        zeros(diff_terms),
+        zeros(diff_ctrl),
         back_state,
         solver_state,
         jnp.array(True),
     )
-    _, _, a_y, a_args, a_terms, _, _, ok = lax.while_loop(
-        lambda carry: carry[0] > 0, body, carry
-    )
-    if saveat.subs.t0:
+    carry = lax.while_loop(lambda carry: carry[0] > 0, body, carry)
+    _, _, a_ext, a_args, a_terms, a_ctrl, _, _, ok = carry
+    a_y = a_ext[1] if reversible else a_ext
+    if subs.t0:
         a_y = jtu.tree_map(lambda a, g: a + g[0], a_y, grad_ys)
+    if reversible and eqx.is_inexact_array(controller.density):
+        a_ctrl = eqx.tree_at(lambda c: c.density, a_ctrl, a_ctrl.density + a_ext[2])
+    grads = (a_y, a_args, a_terms, a_ctrl)
     if throw:
-        a_y, a_args, a_terms = eqx.error_if((a_y, a_args, a_terms), ~ok, REBUILD_FAILED)
+        grads = eqx.error_if(grads, ~ok, REBUILD_FAILED)
     else:
-        nan = lambda x: jnp.where(ok, x, jnp.nan)
-        a_y, a_args, a_terms = jtu.tree_map(nan, (a_y, a_args, a_terms))
-    return a_y, a_args, a_terms
+        grads = jtu.tree_map(lambda x: jnp.where(ok, x, jnp.nan), grads)
+    return grads
+
+
+def _anchors(advance, ext0, solver_state, n, max_steps, every):
+    """The forward solve repeated, keeping its states at steps 0, k, 2k, ..."""
+    anchors = jtu.tree_map(
+        lambda x: jnp.zeros((max_steps // every + 1,) + jnp.shape(x), x.dtype), ext0
+    )
+
+    def body(i, carry):
+        ext, state, anchors = carry
+        j, offset = divmod(i, every)
+        anchors = jtu.tree_map(
+            lambda a, x: a.at[j].set(jnp.where(offset == 0, x, a[j])), anchors, ext
+        )
+        (ext, _), (state, _) = advance(i + 1, ext, state)
+        return ext, state, anchors
+
+    return lax.fori_loop(0, n, body, (ext0, solver_state, anchors))[2]

@@ -42,7 +42,7 @@ from .._lagrangian import (
     momentum_reads_position,
 )
 from .._space import is_euclidean
-from .base import StepInputs
+from .base import AbstractSymmetricSolver, StepInputs
 from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC, SYMMETRIC_POSITIVE
 from .rule import rule_increments, rule_residual, rule_work
 from .trees import satisfied_order, TREE_ORDER_MAX
@@ -398,6 +398,16 @@ _VPRK_REFERENCES = r"""
         }
         ```
 """
+
+
+def is_symmetric(solver) -> bool:
+    """Whether `solver` is a symmetric method of this package, whose step with $-h$
+    inverts its step with $h$: an `AbstractSymmetricSolver` and, for a VPRK (one
+    class for every tableau), one whose tableau is symmetric. (A `Composition` is
+    one: it refuses an asymmetric base.)"""
+    if isinstance(solver, AbstractVPRK):
+        return bool(solver.tableau.symmetric)
+    return isinstance(solver, AbstractSymmetricSolver)
 
 
 class VPRK(AbstractVPRK):
