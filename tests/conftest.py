@@ -1,6 +1,7 @@
 import gc
 
 import jax
+import numpy as np
 import pytest
 
 
@@ -116,3 +117,17 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.nodeid.removeprefix("tests/").startswith(SLOW):
             item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture
+def symplectic_euler_tableau():
+    """Symplectic Euler as a VPRK tableau: a valid method that is not symmetric."""
+    import diffrax_vi as dvi  # After x64 is enabled above.
+
+    return dvi.VPRKTableau(
+        a=np.array([[1.0]]),
+        a_bar=np.array([[0.0]]),
+        b=np.array([1.0]),
+        c=np.array([1.0]),
+        order=1,
+    )

@@ -228,7 +228,9 @@ def test_root_finder_settings_out_of_range_are_refused(make):
         make()
 
 
-def test_reversible_controller_fails_a_zero_step_and_refuses_a_non_symmetric_solver():
+def test_reversible_controller_fails_a_zero_step_and_refuses_a_non_symmetric_solver(
+    symplectic_euler_tableau,
+):
     monitor = dvi.PotentialMonitor(
         dvi.SeparableLagrangian(lambda t, q, a: -1 / (1 + q**2))
     )
@@ -246,17 +248,10 @@ def test_reversible_controller_fails_a_zero_step_and_refuses_a_non_symmetric_sol
     # max_steps of zero-length ones.
     with pytest.raises(eqx.EquinoxRuntimeError, match="Nonfinite"):
         solve(term, dvi.MidpointVI(), 0.0)
-    symplectic_euler = dvi.VPRKTableau(
-        a=np.array([[1.0]]),
-        a_bar=np.array([[0.0]]),
-        b=np.array([1.0]),
-        c=np.array([1.0]),
-        order=1,
-    )
     for solver in (
         dfx.Euler(),
         dfx.HalfSolver(dvi.MidpointVI()),
-        dvi.VPRK(symplectic_euler),
+        dvi.VPRK(symplectic_euler_tableau),
     ):
         with pytest.raises(ValueError, match="only with a symmetric solver"):
             solve(term, solver, 0.1)
