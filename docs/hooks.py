@@ -1,6 +1,12 @@
-"""mkdocs hook: generate the table of methods from the library itself."""
+"""mkdocs hooks: generate the table of methods from the library itself, and turn
+every formula into MathML while the site is built, so that pages render their
+mathematics with no script and no network."""
+
+import html
+import re
 
 import diffrax_vi as dvi
+import latex2mathml.converter
 
 
 def _row(name, solver, explicit, forces):
@@ -80,3 +86,38 @@ def methods_table() -> str:
 
 def on_page_markdown(markdown, page, config, files):
     return markdown.replace("<!-- methods-table -->", methods_table())
+
+
+# pymdownx.arithmatex (generic mode) wraps inline maths as \( \) in a span and
+# display maths as \[ \] in a div.
+_MATH = re.compile(
+    r'<(span|div) class="arithmatex">\s*\\[(\[](.*?)\\[)\]]\s*</\1>', re.S
+)
+
+
+def _mathml(match):
+    display = "block" if match.group(1) == "div" else "inline"
+    tex = html.unescape(match.group(2))
+    return latex2mathml.converter.convert(tex, display=display)
+
+
+def on_page_content(html_text, page, config, files):
+    html_text = _MATH.sub(_mathml, html_text)
+    if 'class="arithmatex"' in html_text:
+        raise ValueError(f"{page.file.src_path}: a formula was left as TeX")
+    return html_text
+
+
+# The site must load nothing from the network: no script, stylesheet, font or
+# image from another host.
+_REMOTE = re.compile(
+    r'<(?:script|link|img|iframe)\b[^>]*\b(?:src|href)="(?:https?:)?//[^"]*"'
+)
+
+
+def on_post_page(output, page, config):
+    remote = _REMOTE.search(output)
+    if remote:
+        where = page.file.src_path
+        raise ValueError(f"{where} loads from the network: {remote.group(0)}")
+    return output
