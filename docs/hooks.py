@@ -3,6 +3,7 @@ every formula into MathML while the site is built, so that pages render their
 mathematics with no script and no network."""
 
 import html
+import pathlib
 import re
 
 import diffrax_vi as dvi
@@ -84,8 +85,20 @@ def methods_table() -> str:
     return header + "\n".join(rows)
 
 
+RESULTS = pathlib.Path(__file__).parent.parent / "benchmarks" / "results"
+_RESULTS_FILE = re.compile(r"<!-- results: (\S+) -->")
+
+
+def _results_block(match):
+    """A results file as its command printed it (without the file's `# ` header)."""
+    lines = (RESULTS / match.group(1)).read_text().splitlines()
+    printed = "\n".join(line for line in lines if not line.startswith("# "))
+    return f"```text\n{printed}\n```"
+
+
 def on_page_markdown(markdown, page, config, files):
-    return markdown.replace("<!-- methods-table -->", methods_table())
+    markdown = markdown.replace("<!-- methods-table -->", methods_table())
+    return _RESULTS_FILE.sub(_results_block, markdown)
 
 
 # pymdownx.arithmatex (generic mode) wraps inline maths as \( \) in a span and
