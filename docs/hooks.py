@@ -86,12 +86,17 @@ def methods_table() -> str:
 
 
 RESULTS = pathlib.Path(__file__).parent.parent / "benchmarks" / "results"
-_RESULTS_FILE = re.compile(r"<!-- results: (\S+) -->")
+_RESULTS_FILE = re.compile(r'<!-- results: (\S+)(?: from "([^"]+)")? -->')
 
 
 def _results_block(match):
-    """A results file as its command printed it (without the file's `# ` header)."""
+    """A results file as its command printed it, without the file's `# ` header;
+    with `from "TEXT"`, only the paragraph that starts with a line starting TEXT."""
     lines = (RESULTS / match.group(1)).read_text().splitlines()
+    if match.group(2):
+        start = [line.startswith(match.group(2)) for line in lines].index(True)
+        blank = [not line.strip() for line in lines[start:]] + [True]
+        lines = lines[start : start + blank.index(True)]
     printed = "\n".join(line for line in lines if not line.startswith("# "))
     return f"```text\n{printed}\n```"
 
