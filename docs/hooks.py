@@ -101,8 +101,39 @@ def _results_block(match):
     return f"```text\n{printed}\n```"
 
 
+def solvers_table() -> str:
+    """`study.SOLVERS`: each name and the solver it makes."""
+    from diffrax_vi.study import SOLVERS
+
+    def describe(solver):
+        if isinstance(solver, dvi.Composition):
+            scheme = solver.scheme
+            return (
+                f"`Composition({solver.base!r}, ...)`: order {scheme.order}, "
+                f"{len(scheme.coefficients)} substeps ({scheme.reference})"
+            )
+        return f"`{solver!r}`"
+
+    rows = [f"| `{name}` | {describe(make())} |" for name, make in SOLVERS.items()]
+    return "| name | solver |\n|---|---|\n" + "\n".join(rows)
+
+
+def scenes_table() -> str:
+    """`scenes.SCENES`: each name, its function and whether it has a monitor."""
+    from diffrax_vi.scenes import MONITORED, SCENES
+
+    rows = [
+        f"| `{name}` | [`diffrax_vi.scenes.{make.__name__}`][] | "
+        f"{'yes' if name in MONITORED else ''} |"
+        for name, make in SCENES.items()
+    ]
+    return "| name | made by | step-size monitor |\n|---|---|---|\n" + "\n".join(rows)
+
+
 def on_page_markdown(markdown, page, config, files):
     markdown = markdown.replace("<!-- methods-table -->", methods_table())
+    markdown = markdown.replace("<!-- solvers-table -->", solvers_table())
+    markdown = markdown.replace("<!-- scenes-table -->", scenes_table())
     return _RESULTS_FILE.sub(_results_block, markdown)
 
 
