@@ -28,6 +28,7 @@ import optimistix as optx
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
 from ._force import applied_force, power
 from ._lagrangian import AbstractLagrangian, lagrangian_value, momentum_offset
+from ._misc import tree_add
 from ._nonlinear import solve
 from ._space import is_euclidean, pull, retract, tangent, tangent_line, transport
 
@@ -144,7 +145,7 @@ def del_residual(
     r"""The discrete Euler–Lagrange residual (Hirani (2000), eq. (3.1))
     $F(q_{k-1}, q_k, q_{k+1}) = D_2 L_d(q_{k-1}, q_k) + D_1 L_d(q_k, q_{k+1})$."""
     a, b = del_momenta(rule, lagrangian, ts, qs, args)
-    return jtu.tree_map(lambda x, y: x + y, a, b)
+    return tree_add(a, b)
 
 
 def del_momenta(
@@ -257,7 +258,7 @@ def step_work(rule, lagrangian, force, t0, h, q0, v, args) -> Scalar:
     energy balance, by the rule's own quadrature (for the midpoint rule
     $h\,F_{1/2}\cdot v$, for the trapezoidal rule $\tfrac h2 (F_0 + F_1)\cdot v$)."""
     f_minus, f_plus = rule.forces(force, t0, h, q0, v, args, lagrangian)
-    return power(jtu.tree_map(lambda a, b: a + b, f_minus, f_plus), v)
+    return power(tree_add(f_minus, f_plus), v)
 
 
 def discrete_hamiltonian_map(

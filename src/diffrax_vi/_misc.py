@@ -101,6 +101,16 @@ def split_state(y: PyTree, name: str = "y0", space: PyTree = None) -> tuple[Q, P
     return q, p
 
 
+def tree_add(x: PyTree, y: PyTree) -> PyTree:
+    """`x + y`, leafwise."""
+    return jtu.tree_map(lambda xi, yi: xi + yi, x, y)
+
+
+def tree_sub(x: PyTree, y: PyTree) -> PyTree:
+    """`x - y`, leafwise."""
+    return jtu.tree_map(lambda xi, yi: xi - yi, x, y)
+
+
 def tree_axpy(a, x: PyTree, y: PyTree) -> PyTree:
     """`a * x + y`, leafwise."""
     return jtu.tree_map(lambda xi, yi: a * xi + yi, x, y)

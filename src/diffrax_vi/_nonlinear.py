@@ -36,6 +36,7 @@ import optimistix as optx
 from equinox import AbstractVar
 from jaxtyping import Array, Int, PyTree, Scalar
 
+from ._misc import tree_max_abs, tree_sub
 from ._private_api import unvmap_any
 
 
@@ -91,10 +92,6 @@ def singular_threshold(n: int, dtype) -> float:
     """A matrix whose smallest pivot or eigenvalue is below this fraction of its
     largest is singular to working precision."""
     return n * float(jnp.finfo(dtype).eps)
-
-
-def _subtract(a, b):
-    return jtu.tree_map(lambda x, y: x - y, a, b)
 
 
 def check_fraction(owner: str, name: str, value) -> None:
@@ -204,8 +201,10 @@ def unrolled_lu_solve(matrix: Array, b: Array) -> tuple[Array, Scalar]:
     return x, _pivot_ratio(a[:, :n])
 
 
-def _max_abs(tree: PyTree) -> Scalar:
-    size = jnp.max(jnp.stack([jnp.max(jnp.abs(x)) for x in jtu.tree_leaves(tree)]))
+def _magnitude(tree: PyTree) -> Scalar:
+    """The largest `|x|` over the leaves, or 1 if all are zero: a scale, not
+    differentiated."""
+    size = tree_max_abs(tree)
     return lax.stop_gradient(jnp.where(size > 0, size, 1))
 
 
@@ -240,14 +239,14 @@ def krylov_solve(
     # The guess and the preconditioner do not change the solution, and lineax does
     # not differentiate its options: their derivatives are dropped.
     guess, preconditioner = lax.stop_gradient((guess, preconditioner))
-    b_size = _max_abs(rhs)
+    b_size = _magnitude(rhs)
     b = jtu.tree_map(lambda x: x / b_size, rhs)
     weigh = lambda tree: (
         tree
         if preconditioner is None
         else jtu.tree_map(lambda p, x: p * x, preconditioner, tree)
     )
-    a_size = _max_abs(weigh(matvec(b)))
+    a_size = _magnitude(weigh(matvec(b)))
     b_struct = jax.eval_shape(lambda: rhs)
     operator = lx.FunctionLinearOperator(
         lambda w: jtu.tree_map(lambda x: x / a_size, matvec(w)), b_struct, tags=tags
@@ -386,7 +385,7 @@ class Newton(AbstractVIRootFinder):
             if self.damped:
                 y_new = _backtrack(fn, y, args, delta, rho, scale)
             else:
-                y_new = _subtract(y, delta)
+                y_new = tree_sub(y, delta)
             return y_new, pivot_ratio, result
 
         y_new, pivot_ratio, result = lax.cond(
@@ -559,7 +558,7 @@ class FixedPoint(AbstractVIRootFinder):
         delta = weigh(f)
         size = scaled_norm(delta, weigh(scale))
         return (
-            _subtract(y, delta),
+            tree_sub(y, delta),
             FixedPointState(size, state.size, state.step + 1),
             scale,
         )

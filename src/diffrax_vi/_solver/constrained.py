@@ -21,7 +21,6 @@ from collections.abc import Callable
 import diffrax as dfx
 import equinox as eqx
 import jax.numpy as jnp
-import jax.tree_util as jtu
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, PyTree
 
@@ -34,14 +33,11 @@ from .._constraint import (
     transpose_product,
 )
 from .._custom_types import P, Q
+from .._misc import tree_add
 from .._nonlinear import AbstractVIRootFinder
 from .._space import retract
 from .base import MethodStep, StepInputs
 from .unknowns import check_start, solve_step, Unknowns
-
-
-def _add(a: PyTree, b: PyTree) -> PyTree:
-    return jtu.tree_map(lambda x, y: x + y, a, b)
 
 
 def init_constrained(
@@ -92,7 +88,7 @@ def constrained_step(
     jacobian0 = constraint_jacobian(g, t0, q0, args)
 
     def shifted(lam) -> StepInputs:
-        return eqx.tree_at(lambda s: s.p0, step, _add(step.p0, push(lam)))
+        return eqx.tree_at(lambda s: s.p0, step, tree_add(step.p0, push(lam)))
 
     def residual(unknowns):
         w, lam = unknowns
@@ -108,7 +104,7 @@ def constrained_step(
     def increments(unknowns):
         w, lam = unknowns
         dq, dp = increments_at(shifted(lam), w)
-        return dq, _add(dp, push(lam))
+        return dq, tree_add(dp, push(lam))
 
     out = solve_step(
         step,
@@ -127,10 +123,10 @@ def constrained_step(
         else (lambda unknowns: work_at(shifted(unknowns[1]), unknowns[0])),
     )
     q1 = retract(space, q0, out.dq)
-    projected = project_momentum(step.term, t1, q1, _add(step.p0, out.dp), args)
+    projected = project_momentum(step.term, t1, q1, tree_add(step.p0, out.dp), args)
     result = dfx.RESULTS.where(
         out.result == dfx.RESULTS.successful, projected.result, out.result
     )
     return MethodStep(
-        out.dq, _add(out.dp, projected.impulse), out.v, out.state, result, out.work
+        out.dq, tree_add(out.dp, projected.impulse), out.v, out.state, result, out.work
     )

@@ -17,7 +17,7 @@ from .._discrete import (
     MidpointRule,
 )
 from .._lagrangian import momentum_reads_position
-from .._misc import all_finite, state_dtype, tree_max_abs
+from .._misc import all_finite, state_dtype, tree_add, tree_max_abs, tree_sub
 from .._nonlinear import (
     krylov_solve,
     Newton,
@@ -50,14 +50,6 @@ class History(eqx.Module):
     positions: tuple[Q, ...]
     steps: tuple[Array, ...]
     momentum: Array
-
-
-def _sub(a, b):
-    return jtu.tree_map(lambda x, y: x - y, a, b)
-
-
-def _add(a, b):
-    return jtu.tree_map(lambda x, y: x + y, a, b)
 
 
 def _scale(c, a):
@@ -223,8 +215,8 @@ class LinearizedVI(AbstractVariationalSolver):
                 root_finder,
                 self.root_find_max_steps,
             )
-            q = jtu.tree_map(lambda a, b: a + b, q, dq)
-            p = jtu.tree_map(lambda a, b: a + b, p, dp)
+            q = tree_add(q, dq)
+            p = tree_add(p, dp)
             qs.append(q)
             t = t - h
             ok = ok & (result == dfx.RESULTS.successful)
@@ -261,25 +253,25 @@ class LinearizedVI(AbstractVariationalSolver):
             )
 
         if self.velocity == "forward":
-            u_x = _scale(1 / h_xy, _sub(y, x))
-            u_y = _scale(1 / h_yz, _sub(z, y))
+            u_x = _scale(1 / h_xy, tree_sub(y, x))
+            u_y = _scale(1 / h_yz, tree_sub(z, y))
             span = h  # q_{k+1} = q_k + h u_k
             base = z
         else:
             h_wx = hs[2]
-            u_x = _scale(1 / (h_wx + h_xy), _sub(y, qs[2]))
-            u_y = _scale(1 / (h_xy + h_yz), _sub(z, x))
+            u_x = _scale(1 / (h_wx + h_xy), tree_sub(y, qs[2]))
+            u_y = _scale(1 / (h_xy + h_yz), tree_sub(z, x))
             span = h_yz + h  # q_{k+1} = q_{k-1} + (h_{k-1} + h) u_k
             base = y
         zeros = jtu.tree_map(jnp.zeros_like, z)
         (left, right), (tangent_left, tangent_right) = jax.jvp(
             momenta, (x, y, z), (u_x, u_y, zeros)
         )
-        drift = _add(left, right)
+        drift = tree_add(left, right)
         momentum = jnp.maximum(
             history.momentum, jnp.maximum(tree_max_abs(left), tree_max_abs(right))
         )
-        rhs = jtu.tree_map(jnp.negative, _add(tangent_left, tangent_right))
+        rhs = jtu.tree_map(jnp.negative, tree_add(tangent_left, tangent_right))
         # The matrix dF/dq_{k+1}: only D1 Ld(q_k, q_{k+1}) depends on q_{k+1}, so
         # each product of the linear solve differentiates it alone.
         _, matvec = jax.linearize(lambda c: momenta(x, y, c)[1], z)
@@ -295,7 +287,7 @@ class LinearizedVI(AbstractVariationalSolver):
         if self.velocity == "forward":
             v = u_z
         else:
-            v = _scale(1 / h, _sub(step.end_position(dq), q0))
+            v = _scale(1 / h, tree_sub(step.end_position(dq), q0))
         _, p1 = average_grads(
             self.discrete_lagrangian, lagrangian, tp0, h, q0, v, step.args
         )
@@ -312,7 +304,7 @@ class LinearizedVI(AbstractVariationalSolver):
                 result,
             )
         new = History((q0,) + qs[:-1], (h,) + hs[:-1], momentum)
-        return MethodStep(dq, _sub(p1, step.p0), v, new, result)
+        return MethodStep(dq, tree_sub(p1, step.p0), v, new, result)
 
     def func(self, terms, t0, y0, args):
         return terms.vf(t0, y0, args)

@@ -9,7 +9,7 @@ import jax.tree_util as jtu
 from jaxtyping import ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, P, Q, RealScalarLike
-from .._misc import all_finite, split_state, sum_is_finite
+from .._misc import all_finite, split_state, sum_is_finite, tree_add
 from .._private_api import unvmap_any
 from .base import (
     AbstractSymmetricSolver,
@@ -20,10 +20,6 @@ from .base import (
     step_control,
     Substep,
 )
-
-
-def _add(a, b):
-    return jtu.tree_map(lambda x, y: x + y, a, b)
 
 
 def kick_drift_kick(
@@ -44,7 +40,7 @@ def kick_drift_kick(
     `(q1 - q0, kick0, kick1, g(q1))`: the two half kicks add up to `p1 - p0`, and
     the last force starts the next step."""
     kick0 = kick(force0)
-    dq = drift(_add(p0, kick0))
+    dq = drift(tree_add(p0, kick0))
     force1 = force(end_position(dq))
     return dq, kick0, kick(force1), force1
 
@@ -180,9 +176,9 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractSymmetricSolver):
         )
         q1, comp_q = compensated_add(q0, dq, comp_q)
         if compensation is None:
-            p1 = _add(_add(p0, kick0), kick1)
+            p1 = tree_add(tree_add(p0, kick0), kick1)
         else:
-            p1, comp_p = compensated_add(p0, _add(kick0, kick1), comp_p)
+            p1, comp_p = compensated_add(p0, tree_add(kick0, kick1), comp_p)
             compensation = (comp_q, comp_p)
         y1 = (q1, p1)
         result = dfx.RESULTS.where(
