@@ -3,24 +3,30 @@ in float64, streaming the energy and angular momentum through the drift study.
 Prints, per solver, the largest energy error over the first and the last tenth of the
 run (bounded: equal; drifting: the last is larger) and the wall time.
 
-Run: `python benchmarks/long_horizon.py [--steps 10000000]` (several minutes).
+Run: `python benchmarks/long_horizon.py [--steps 10000000] [--xla-default]` (a few
+minutes on one core).
 """
 
 import argparse
 
+import diffrax
 import jax
 
 
 jax.config.update("jax_enable_x64", True)
 from diffrax_vi.scenes import kepler  # noqa: E402
 from diffrax_vi.study import drift  # noqa: E402
+from step_cost import add_xla_option, apply_xla_option  # noqa: E402
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=10_000_000)
     parser.add_argument("--solvers", default="StormerVerlet,MidpointVI,KahanLi8,Tsit5")
+    add_xla_option(parser)
     args = parser.parse_args()
+    setting = apply_xla_option(args)
+    print(f"jax {jax.__version__}, diffrax {diffrax.__version__}, {setting}")
     periods = args.steps // 200
     study = drift(
         kepler(),
