@@ -93,8 +93,6 @@ SLOW = (
     "test_surface.py::test_scene_parameters_are_differentiable[cartesian_pendulum",
     # Krylov against dense: test_large.py::test_krylov_newton_equals_dense.
     "test_large.py::test_symmetric_krylov_equals_dense",
-    # The other unit scaling of the same check runs by default.
-    "test_guards.py::test_one_degenerate_direction_of_two_is_singular[1e-06",
     # Orders 2, 4 and 8 on the groups run by default.
     "test_lie.py::test_order_on_the_heavy_top_and_the_free_body[heavy_top-1.0-kahan_li6",
     "test_lie.py::test_order_on_the_heavy_top_and_the_free_body[free_rigid_body-10.0-k",

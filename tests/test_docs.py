@@ -9,6 +9,7 @@ import sys
 
 import pytest
 
+
 DOCS = pathlib.Path(__file__).parent.parent / "docs"
 _PYTHON_BLOCK = re.compile(r"^```python\n(.*?)^```", re.S | re.M)
 # XLA reads the small-loop setting when its backend starts: a block that sets it is a

@@ -26,10 +26,14 @@ def _solve(lagrangian, solver, y0, *, t1=1.0, dt=0.1, **kwargs):
     )
 
 
+# The scales below are array fields, not Python floats, so that both unit scalings of
+# a test run one compiled program (a float field would be static to the jit).
+
+
 class Kepler(dvi.AbstractLagrangian):
     """Kepler's problem for a body of mass `m` (`mu = 1`)."""
 
-    m: float
+    m: jax.Array
 
     def __call__(self, t, q, v, args):
         return self.m * (0.5 * jnp.sum(v**2) + 1 / jnp.sqrt(jnp.sum(q**2)))
@@ -39,7 +43,7 @@ class Pendulum(dvi.AbstractLagrangian):
     """A pendulum of unit mass and length under gravity `g`: `g -> g / s^2` with
     `h -> s h` is the same motion in other units of time."""
 
-    g: float
+    g: jax.Array
 
     def __call__(self, t, q, v, args):
         return 0.5 * v**2 + self.g * jnp.cos(q)
@@ -65,91 +69,102 @@ ONE_LINEAR_VELOCITY = dvi.Lagrangian(
 )
 
 
-@pytest.mark.parametrize("c", UNITS)
 @pytest.mark.parametrize("name,solver", ALL)
-def test_velocity_entering_linearly_is_singular(name, solver, c):
+def test_velocity_entering_linearly_is_singular(name, solver):
     """L = q v - q^2 / 2 has dL/dv = q: no velocity is determined. From p0 on the
     constraint p = q the equations are consistent, and still the step is not
     determined: reported as singular, not stepped."""
-    y0 = (jnp.array(0.5), jnp.array(0.5 * c))
-    sol = _solve(LINEAR_IN_V, solver, y0, args=jnp.asarray(c), throw=False)
-    assert sol.result == dfx.RESULTS.singular
+    for c in UNITS:
+        y0 = (jnp.array(0.5), jnp.array(0.5 * c))
+        sol = _solve(LINEAR_IN_V, solver, y0, args=jnp.asarray(c), throw=False)
+        assert sol.result == dfx.RESULTS.singular, c
 
 
-@pytest.mark.parametrize("c", UNITS)
-def test_one_degenerate_direction_of_two_is_singular(c):
-    y0 = (jnp.array([0.3, 0.5]), c * jnp.array([0.0, 0.5]))
-    args = jnp.asarray(c)
-    for _, solver in ALL:
-        sol = _solve(ONE_LINEAR_VELOCITY, solver, y0, args=args, throw=False)
-        assert sol.result == dfx.RESULTS.singular
-    with pytest.raises(eqx.EquinoxRuntimeError, match="degenerate"):
-        term = dvi.LagrangianTerm(ONE_LINEAR_VELOCITY)
-        dfx.diffeqsolve(term, dfx.Tsit5(), 0.0, 1.0, 0.1, y0, args)
+def test_one_degenerate_direction_of_two_is_singular():
+    for c in UNITS:
+        y0 = (jnp.array([0.3, 0.5]), c * jnp.array([0.0, 0.5]))
+        args = jnp.asarray(c)
+        for name, solver in ALL:
+            sol = _solve(ONE_LINEAR_VELOCITY, solver, y0, args=args, throw=False)
+            assert sol.result == dfx.RESULTS.singular, (name, c)
+        with pytest.raises(eqx.EquinoxRuntimeError, match="degenerate"):
+            term = dvi.LagrangianTerm(ONE_LINEAR_VELOCITY)
+            dfx.diffeqsolve(term, dfx.Tsit5(), 0.0, 1.0, 0.1, y0, args)
 
 
-@pytest.mark.parametrize("c", UNITS)
-def test_zero_mass_is_singular_and_a_small_one_is_not(c):
-    potential = lambda t, q, args: 0.5 * c * jnp.sum(q**2)
+def test_zero_mass_is_singular_and_a_small_one_is_not():
+    potential = lambda t, q, c: 0.5 * c * jnp.sum(q**2)
     y0 = (jnp.array([0.3, 0.5]), jnp.zeros(2))
-    zero = dvi.SeparableLagrangian(potential, mass=c * jnp.array([1.0, 0.0]))
-    for solver in (dvi.TrapezoidalVI(), dvi.MidpointVI()):
-        assert _solve(zero, solver, y0, throw=False).result == dfx.RESULTS.singular
-    with pytest.raises(eqx.EquinoxRuntimeError, match="mass"):
-        _solve(zero, dvi.StormerVerlet(), y0)
-    # Every mass small (the same physics in units of c): nothing is singular.
-    small = dvi.SeparableLagrangian(potential, mass=c * jnp.ones(2))
-    for solver in (dvi.TrapezoidalVI(), dvi.StormerVerlet(), dvi.MidpointVI()):
-        sol = _solve(small, solver, y0, t1=np.pi, dt=np.pi / 200)
-        # Unit frequency: half a period later q = -q0.
-        assert np.allclose(sol.ys[0][-1], -y0[0], atol=1e-4)
+    for c in UNITS:
+        args = jnp.asarray(c)
+        zero = dvi.SeparableLagrangian(potential, mass=c * jnp.array([1.0, 0.0]))
+        for solver in (dvi.TrapezoidalVI(), dvi.MidpointVI()):
+            sol = _solve(zero, solver, y0, args=args, throw=False)
+            assert sol.result == dfx.RESULTS.singular, (solver, c)
+        with pytest.raises(eqx.EquinoxRuntimeError, match="mass"):
+            _solve(zero, dvi.StormerVerlet(), y0, args=args)
+        # Every mass small (the same physics in units of c): nothing is singular.
+        small = dvi.SeparableLagrangian(potential, mass=c * jnp.ones(2))
+        for solver in (dvi.TrapezoidalVI(), dvi.StormerVerlet(), dvi.MidpointVI()):
+            sol = _solve(small, solver, y0, t1=np.pi, dt=np.pi / 200, args=args)
+            # Unit frequency: half a period later q = -q0.
+            assert np.allclose(sol.ys[0][-1], -y0[0], atol=1e-4), (solver, c)
 
 
-@pytest.mark.parametrize("c", [1.0, 1e-3])
-def test_linearized_guard_is_unit_free(c):
+def test_linearized_guard_is_unit_free():
     """Centered LinearizedVI on Kepler (e = 0.6, 200 steps per period) follows a
     parasitic mode and explodes: unguarded it reports success; guarded it fails near
     step 328 in any units of mass. A healthy run passes in either units."""
-    e = 0.6
-    y0 = (jnp.array([1 - e, 0.0]), c * jnp.array([0.0, np.sqrt((1 + e) / (1 - e))]))
-    kwargs = dict(t1=6 * np.pi, dt=2 * np.pi / 200, throw=False)
-    silent = _solve(
-        Kepler(c),
-        dvi.LinearizedVI(velocity="centered", max_del_residual=None),
-        y0,
-        max_steps=None,
-        **kwargs,
-    )
-    assert silent.result == dfx.RESULTS.successful
-    assert np.max(np.abs(silent.ys[0])) > 10  # far off the unit ellipse
-    guarded = _solve(Kepler(c), dvi.LinearizedVI(velocity="centered"), y0, **kwargs)
-    assert guarded.result == dfx.RESULTS.nonlinear_divergence
-    assert 250 < int(guarded.stats["num_accepted_steps"]) < 450
-    # e = 0: the circular orbit is healthy, in either units.
-    circle = (jnp.array([1.0, 0.0]), c * jnp.array([0.0, 1.0]))
-    healthy = _solve(Kepler(c), dvi.LinearizedVI(velocity="centered"), circle, **kwargs)
-    assert healthy.result == dfx.RESULTS.successful
-    assert abs(float(jnp.linalg.norm(healthy.ys[0][-1])) - 1) < 1e-3
+    for c in (1.0, 1e-3):
+        e = 0.6
+        y0 = (jnp.array([1 - e, 0.0]), c * jnp.array([0.0, np.sqrt((1 + e) / (1 - e))]))
+        kwargs = dict(t1=6 * np.pi, dt=2 * np.pi / 200, throw=False)
+        silent = _solve(
+            Kepler(jnp.asarray(c)),
+            dvi.LinearizedVI(velocity="centered", max_del_residual=None),
+            y0,
+            max_steps=None,
+            **kwargs,
+        )
+        assert silent.result == dfx.RESULTS.successful
+        assert np.max(np.abs(silent.ys[0])) > 10  # far off the unit ellipse
+        guarded = _solve(
+            Kepler(jnp.asarray(c)), dvi.LinearizedVI(velocity="centered"), y0, **kwargs
+        )
+        assert guarded.result == dfx.RESULTS.nonlinear_divergence
+        assert 250 < int(guarded.stats["num_accepted_steps"]) < 450
+        # e = 0: the circular orbit is healthy, in either units.
+        circle = (jnp.array([1.0, 0.0]), c * jnp.array([0.0, 1.0]))
+        healthy = _solve(
+            Kepler(jnp.asarray(c)),
+            dvi.LinearizedVI(velocity="centered"),
+            circle,
+            **kwargs,
+        )
+        assert healthy.result == dfx.RESULTS.successful
+        assert abs(float(jnp.linalg.norm(healthy.ys[0][-1])) - 1) < 1e-3
 
 
-@pytest.mark.parametrize("s", [1.0, 1e3])
-def test_huge_step_does_not_land_on_a_spurious_root(s):
+def test_huge_step_does_not_land_on_a_spurious_root():
     """The bound pendulum (energy -0.54) at h = 5: Newton can converge to a root
     that puts it at energy 82. The root is reported as divergence, in any units of
-    time; the same method at h = 1 is fine."""
-    lagrangian = Pendulum(1.0 / s**2)
-    y0 = (jnp.array(1.0), jnp.array(0.5 / s))
-    energy = lambda y: float(dvi.energy(lagrangian, 0.0, y)) * s**2
-    for h, expected in (
-        (5.0, dfx.RESULTS.nonlinear_divergence),
-        (10.0, dfx.RESULTS.nonlinear_divergence),
-        (1.0, dfx.RESULTS.successful),
-    ):
-        sol = _solve(lagrangian, dvi.MidpointVI(), y0, t1=40 * s, dt=h * s, throw=False)
-        assert sol.result == expected, h
-        if expected == dfx.RESULTS.successful:
-            y1 = (sol.ys[0][-1], sol.ys[1][-1])
-            assert abs(energy(y1) - energy(y0)) < 0.05
+    time; the same method at h = 1 is fine. (Times and scales are arrays: one
+    compiled solve for every step and both units.)"""
+    for s in (1.0, 1e3):
+        lagrangian = Pendulum(jnp.asarray(1.0 / s**2))
+        y0 = (jnp.array(1.0), jnp.array(0.5 / s))
+        energy = lambda y: float(dvi.energy(lagrangian, 0.0, y)) * s**2
+        for h, expected in (
+            (5.0, dfx.RESULTS.nonlinear_divergence),
+            (10.0, dfx.RESULTS.nonlinear_divergence),
+            (1.0, dfx.RESULTS.successful),
+        ):
+            t1, dt = jnp.asarray(40 * s), jnp.asarray(h * s)
+            sol = _solve(lagrangian, dvi.MidpointVI(), y0, t1=t1, dt=dt, throw=False)
+            assert sol.result == expected, (h, s)
+            if expected == dfx.RESULTS.successful:
+                y1 = (sol.ys[0][-1], sol.ys[1][-1])
+                assert abs(energy(y1) - energy(y0)) < 0.05
 
 
 @pytest.mark.parametrize("bad", ["t1", "dt0"])
