@@ -175,10 +175,10 @@ def _out(args: argparse.Namespace, scene: str) -> pathlib.Path:
     return out
 
 
-def _report(study, out: pathlib.Path) -> int:
+def _report(study, out: pathlib.Path, verdict: str | None = None) -> int:
     print(study.table())
-    if hasattr(study, "verdict"):
-        print(study.verdict())
+    if verdict is not None:
+        print(verdict)
     for path in study.write(out):
         print(f"wrote {path}")
     return 0
@@ -194,15 +194,14 @@ def _study(call, **kwargs):
 
 
 def _drift(args: argparse.Namespace) -> int:
-    from .study import drift
-    from .study._drift import check_drift, check_methods
+    from .study import check_drift, drift
 
     scene = _scene(args.scene, args.param)
     methods = _methods(args.solvers, args.rtol, scene)
-    _study(check_methods, scene=scene, methods=methods)
     _study(
         check_drift,
         scene=scene,
+        methods=methods,
         periods=args.periods,
         steps_per_period=args.steps_per_period,
         n_save=args.save,
@@ -229,17 +228,19 @@ def _drift(args: argparse.Namespace) -> int:
         spread=args.spread,
         progress=args.progress,
     )
-    return _report(study, out)
+    return _report(study, out, study.verdict())
 
 
 def _work_precision(args: argparse.Namespace) -> int:
-    from .study import work_precision
-    from .study._checks import step_count
+    from .study import check_work_precision, work_precision
 
     scene = _scene(args.scene, args.param)
     methods = _methods(args.solvers, 1e-8, scene)
-    for spp in args.steps_per_period:
-        _study(step_count, periods=args.periods, steps_per_period=spp)
+    _study(
+        check_work_precision,
+        periods=args.periods,
+        steps_per_period=args.steps_per_period,
+    )
     out = _out(args, scene.name)
     print(f"{scene.name}: {args.periods:g} periods, {args.dtype}", flush=True)
     study = _study(

@@ -1,6 +1,11 @@
 """Energy-drift and work-precision studies: many solvers, one scene, the same steps."""
 
-from ._drift import drift as drift, DriftRun as DriftRun, DriftStudy as DriftStudy
+from ._drift import (
+    check_drift as check_drift,
+    drift as drift,
+    DriftRun as DriftRun,
+    DriftStudy as DriftStudy,
+)
 from ._methods import (
     as_method as as_method,
     make_solver as make_solver,
@@ -9,6 +14,7 @@ from ._methods import (
 )
 from ._run import reversible_dt0 as reversible_dt0
 from ._work_precision import (
+    check_work_precision as check_work_precision,
     reference_state as reference_state,
     work_precision as work_precision,
     WorkPrecision as WorkPrecision,

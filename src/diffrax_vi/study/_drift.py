@@ -206,14 +206,18 @@ def check_methods(scene: Scene, methods: list) -> None:
 
 def check_drift(
     scene: Scene,
+    methods: Sequence[Method],
     periods: int | float,
     steps_per_period: int | float,
     n_save: int | float,
     dtype,
     ensemble: int | float | None = None,
 ) -> int:
-    """Check a drift study's settings before any work (see
-    [`diffrax_vi.study.drift`][]'s **Raises**); returns the number of fixed steps."""
+    """Check a drift study's methods (as [`diffrax_vi.study.as_method`][] makes them)
+    and settings without running anything, raising what
+    [`diffrax_vi.study.drift`][] would raise (its **Raises**); returns the number of
+    fixed steps. The command line calls it before it creates the output folder."""
+    check_methods(scene, methods)
     n_steps = step_count(periods, steps_per_period)
     if isinstance(n_save, bool) or int(n_save) != n_save or n_steps % n_save:
         raise ValueError(
@@ -292,8 +296,9 @@ def drift(
     an ensemble that cannot be split evenly across the devices.
     """
     methods = [as_method(spec, rtol) for spec in non_empty("solvers", solvers)]
-    check_methods(scene, methods)
-    n_steps = check_drift(scene, periods, steps_per_period, n_save, dtype, ensemble)
+    n_steps = check_drift(
+        scene, methods, periods, steps_per_period, n_save, dtype, ensemble
+    )
     if ensemble is not None and spread != 0:
         positive("spread", spread)
     scene = cast_scene(scene, dtype)

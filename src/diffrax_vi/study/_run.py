@@ -132,7 +132,6 @@ def reversible_dt0(
         else:
             dt0, rescaled = dt0 * taken / wanted, rescaled + 1
     return jnp.asarray(dt0, dtype)
-    return dt0
 
 
 def run(

@@ -71,6 +71,16 @@ class WorkPrecision:
         return written
 
 
+def check_work_precision(
+    periods: int | float, steps_per_period: Sequence[int]
+) -> dict[int, int]:
+    """Check a work-precision study's horizon and step grid without running
+    anything, raising what [`diffrax_vi.study.work_precision`][] would raise; returns
+    the number of fixed steps for each entry of `steps_per_period`."""
+    steps_per_period = non_empty("steps_per_period", steps_per_period)
+    return {spp: step_count(periods, spp) for spp in steps_per_period}
+
+
 def work_precision(
     scene: Scene,
     solvers: Sequence[str | dfx.AbstractSolver | Method],
@@ -99,8 +109,7 @@ def work_precision(
     """
     solvers = non_empty("solvers", solvers)
     methods = [as_method(spec) for spec in solvers]
-    steps_per_period = non_empty("steps_per_period", steps_per_period)
-    grid = {spp: step_count(periods, spp) for spp in steps_per_period}
+    grid = check_work_precision(periods, steps_per_period)
     if any(m.rtol is not None for m in methods):
         rtols = [tolerance(r) for r in non_empty("rtols", rtols)]
     t1 = scene.period * periods
