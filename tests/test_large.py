@@ -136,7 +136,7 @@ def test_symmetric_krylov_equals_dense():
 def test_krylov_falls_back_where_bicgstab_breaks_down():
     # BiCGStab breaks down on this symmetric indefinite matrix (a swap of two
     # coordinates); the solve falls back to CG on the normal equations.
-    from diffrax_vi._nonlinear import krylov_solve
+    from diffrax_vi._linear import krylov_solve
 
     a = jnp.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 2.0]])
     b = jnp.array([1.0, 0.0, 1.0])

@@ -25,7 +25,7 @@ from ._lagrangian import (
     TangentLift as TangentLift,
     velocity as velocity,
 )
-from ._nonlinear import (
+from ._root_finders import (
     FixedPoint as FixedPoint,
     Newton as Newton,
     SimplifiedNewton as SimplifiedNewton,

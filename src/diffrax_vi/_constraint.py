@@ -25,13 +25,8 @@ from jaxtyping import Array, Float, PyTree
 from ._custom_types import Args, P, Q, RealScalarLike
 from ._lagrangian import legendre_residual, momentum, velocity, velocity_is_explicit
 from ._misc import all_finite, split_state, state_dtype
-from ._nonlinear import (
-    Newton,
-    newton_tolerance,
-    scaled_norm,
-    singular_threshold,
-    solve,
-)
+from ._root_finders import Newton, solve
+from ._tolerance import newton_tolerance, scaled_norm, singular_threshold
 
 
 def constraint_values(

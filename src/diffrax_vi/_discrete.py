@@ -29,7 +29,7 @@ from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
 from ._force import applied_force, power
 from ._lagrangian import AbstractLagrangian, lagrangian_value, momentum_offset
 from ._misc import tree_add
-from ._nonlinear import solve
+from ._root_finders import solve
 from ._space import is_euclidean, pull, retract, tangent, tangent_line, transport
 
 

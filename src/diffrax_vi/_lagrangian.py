@@ -13,19 +13,20 @@ import lineax as lx
 from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
+from ._linear import krylov_solve, unrolled_lu_solve
 from ._misc import all_finite, reads, split_state, state_dtype, tree_max_abs
-from ._nonlinear import (
-    krylov_solve,
-    Newton,
-    NEWTON_DENSE_MAX,
+from ._private_api import unvmap_any
+from ._root_finders import Newton, solve
+from ._space import AbstractSpace, Euclidean, is_euclidean, left_gradient, tangent
+from ._tolerance import (
+    AFFINE_MAX_STEPS,
+    KRYLOV_FLOOR,
+    LEGENDRE_MAX_STEPS,
+    newton_is_dense,
     newton_tolerance,
     scaled_norm,
     singular_threshold,
-    solve,
-    unrolled_lu_solve,
 )
-from ._private_api import unvmap_any
-from ._space import AbstractSpace, Euclidean, is_euclidean, left_gradient, tangent
 
 
 class AbstractLagrangian(eqx.Module):
@@ -432,16 +433,18 @@ def _affine_velocity(lagrangian, t, q, p, args, krylov: bool) -> tuple[V, dfx.RE
     # makes the derivative the implicit one, D^{-1} (db - dD v), even at a point
     # where the mass happens to be diagonal and its derivative is not.
     v = jtu.tree_map(lambda x, w, ri: x + w * ri, jacobi, weights, r)
-    diagonal = lax.stop_gradient(tree_max_abs(r) <= 64 * eps * tree_max_abs(rhs))
+    diagonal = lax.stop_gradient(
+        tree_max_abs(r) <= KRYLOV_FLOOR * eps * tree_max_abs(rhs)
+    )
     solved = diagonal & regular
 
     def conjugate_gradients():
         return krylov_solve(
             hvp,
             rhs,
-            64 * eps,
+            KRYLOV_FLOOR * eps,
             frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag}),
-            min(n + 1, _AFFINE_MAX_STEPS),
+            min(n + 1, AFFINE_MAX_STEPS),
             preconditioner=weights,
             guess=v,
         )
@@ -464,12 +467,6 @@ def _affine_velocity(lagrangian, t, q, p, args, krylov: bool) -> tuple[V, dfx.RE
     # A diagonal mass with an entry at zero: CG would solve a consistent system
     # (zero momentum there) and hide it.
     return v, dfx.RESULTS.where(diagonal & ~regular, dfx.RESULTS.singular, result)
-
-
-# Conjugate-gradient iterations of the matrix-free inverse of an affine Legendre map
-# before Newton's method takes over (at most n + 1 for n coordinates: exact in n
-# steps, and lineax's test on the last update takes one more).
-_AFFINE_MAX_STEPS = 100
 
 
 # Newton for the inverse Legendre map of a general Lagrangian: damped, so that it
@@ -564,7 +561,7 @@ def velocity(
                 residual,
                 v_guess,
                 _LEGENDRE_NEWTON,
-                max_steps=32,
+                max_steps=LEGENDRE_MAX_STEPS,
                 tags=frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag}),
             )
             regular = ~(solved.pivot_ratio <= singular_threshold(n, dtype))
@@ -583,7 +580,7 @@ def velocity(
             # evaluations of the residual; Newton from there where it fails. Up to
             # 16 degrees of freedom a mass that is not diagonal goes to Newton's
             # dense LU, whose pivots tell a singular one.
-            krylov = n > NEWTON_DENSE_MAX
+            krylov = not newton_is_dense(n)
             v, result = _affine_velocity(lagrangian, t, q, p, args, krylov)
             failed = result == dfx.RESULTS.breakdown
             v_newton, result_newton = lax.cond(
@@ -599,14 +596,12 @@ def velocity(
 def velocity_is_explicit(lagrangian: AbstractLagrangian, p: P) -> bool:
     """Whether `velocity` computes $v(q, p)$ without a root finder, by
     differentiable arithmetic: a separable Lagrangian ($M^{-1}p$), or one marked
-    quadratic in $v$ of at most `NEWTON_DENSE_MAX` degrees of freedom (one unrolled
-    elimination)."""
+    quadratic in $v$ with few enough degrees of freedom for a dense solve
+    (`newton_is_dense`: one unrolled elimination)."""
     if isinstance(lagrangian, AbstractSeparableLagrangian):
         return True
     n = sum(jnp.size(x) for x in jtu.tree_leaves(p))
-    return isinstance(lagrangian, AbstractQuadraticLagrangian) and (
-        n <= NEWTON_DENSE_MAX
-    )
+    return isinstance(lagrangian, AbstractQuadraticLagrangian) and newton_is_dense(n)
 
 
 def result_or_nonfinite(v: V, p: P, result: dfx.RESULTS) -> dfx.RESULTS:

@@ -116,6 +116,16 @@ def tree_axpy(a, x: PyTree, y: PyTree) -> PyTree:
     return jtu.tree_map(lambda xi, yi: a * xi + yi, x, y)
 
 
+def tree_size(tree: PyTree) -> int:
+    """The number of entries over every leaf."""
+    return sum(np.size(x) for x in jtu.tree_leaves(tree))
+
+
+def tree_dtype(tree: PyTree):
+    """The dtype that the leaves of `tree` promote to."""
+    return jnp.result_type(*jtu.tree_leaves(tree))
+
+
 def tree_max_abs(tree: PyTree) -> Array:
     """The largest `|x|` over every leaf."""
     leaves = [jnp.max(jnp.abs(x), initial=0.0) for x in jtu.tree_leaves(tree)]

@@ -21,6 +21,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, RealScalarLike
+from .._tolerance import COEFFICIENT_ATOL, PALINDROME_ATOL, PRODUCT_TOL
 from .base import (
     AbstractSymmetricSolver,
     AbstractSymplecticSolver,
@@ -63,12 +64,12 @@ class CompositionScheme:
             )
         if np.any(gammas == 0):
             raise ValueError("A composition scheme's step fractions must be non-zero.")
-        if not np.allclose(gammas, gammas[::-1], rtol=0, atol=1e-14):
+        if not np.allclose(gammas, gammas[::-1], rtol=0, atol=PALINDROME_ATOL):
             raise ValueError(
                 "A composition scheme must be symmetric (gamma_k = gamma_{m+1-k}), so "
                 f"that the composition is symmetric; got {gammas.tolist()}."
             )
-        if abs(gammas.sum() - 1) > 1e-13:
+        if abs(gammas.sum() - 1) > COEFFICIENT_ATOL:
             raise ValueError(
                 "A composition scheme's step fractions must sum to 1, so that a step "
                 f"of the composition is a step of size h; they sum to {gammas.sum()!r}."
@@ -79,7 +80,7 @@ class CompositionScheme:
             # rest.
             for k in range(self.base_order + 1, self.order, 2):
                 defect = abs(np.sum(gammas**k)) / np.sum(np.abs(gammas) ** k)
-                if defect > 1e-12:
+                if defect > PRODUCT_TOL:
                     raise ValueError(
                         f"A composition scheme of order {self.order} for a base of "
                         f"order {self.base_order} needs sum gamma^{k} = 0; it is "
@@ -93,7 +94,7 @@ class CompositionScheme:
         if self.order is None:
             k = base_order + 1
             gammas = self.coefficients
-            if abs(np.sum(gammas**k)) <= 1e-12 * np.sum(np.abs(gammas) ** k):
+            if abs(np.sum(gammas**k)) <= PRODUCT_TOL * np.sum(np.abs(gammas) ** k):
                 return base_order + 2
             return base_order
         if base_order < self.base_order:

@@ -34,7 +34,7 @@ from .._constraint import (
 )
 from .._custom_types import P, Q
 from .._misc import tree_add
-from .._nonlinear import AbstractVIRootFinder
+from .._root_finders import AbstractVIRootFinder
 from .._space import retract
 from .base import MethodStep, StepInputs
 from .unknowns import check_start, solve_step, Unknowns

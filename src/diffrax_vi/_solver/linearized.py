@@ -17,16 +17,24 @@ from .._discrete import (
     MidpointRule,
 )
 from .._lagrangian import momentum_reads_position
-from .._misc import all_finite, state_dtype, tree_add, tree_max_abs, tree_sub
-from .._nonlinear import (
-    krylov_solve,
-    Newton,
-    NEWTON_DENSE_MAX,
+from .._linear import krylov_solve
+from .._misc import (
+    all_finite,
+    state_dtype,
+    tree_add,
     tree_dtype,
+    tree_max_abs,
     tree_size,
+    tree_sub,
 )
 from .._private_api import unvmap_any
+from .._root_finders import Newton
 from .._space import is_euclidean
+from .._tolerance import (
+    LINEARIZED_RTOL,
+    LINEARIZED_STEPS_PER_UNKNOWN,
+    newton_is_dense,
+)
 from .base import (
     AbstractVariationalSolver,
     initial_compensation,
@@ -135,7 +143,7 @@ class LinearizedVI(AbstractVariationalSolver):
     def _linear_solve(self, matvec, rhs, guess, tags) -> tuple[PyTree, lx.RESULTS]:
         # Conjugate gradients for a symmetric matrix at every size: no LAPACK call,
         # so XLA compiles a small system's step whole.
-        dense = tree_size(rhs) <= NEWTON_DENSE_MAX and not tags
+        dense = newton_is_dense(tree_size(rhs)) and not tags
         if self.linear_solver is not None or dense:
             operator = lx.FunctionLinearOperator(matvec, jax.eval_shape(lambda: rhs))
             solver = lx.LU() if self.linear_solver is None else self.linear_solver
@@ -144,7 +152,12 @@ class LinearizedVI(AbstractVariationalSolver):
         # One solve with no Newton iteration to correct it: to near round-off.
         eps = float(jnp.finfo(tree_dtype(rhs)).eps)
         return krylov_solve(
-            matvec, rhs, 100 * eps, tags, 10 * tree_size(rhs), guess=guess
+            matvec,
+            rhs,
+            LINEARIZED_RTOL * eps,
+            tags,
+            LINEARIZED_STEPS_PER_UNKNOWN * tree_size(rhs),
+            guess=guess,
         )
 
     def _n_past(self) -> int:

@@ -15,6 +15,8 @@ import itertools
 
 import numpy as np
 
+from .._tolerance import ORDER_CONDITION_ATOL
+
 
 # Checked tree by tree up to this order (9498 conditions at order 8).
 TREE_ORDER_MAX = 8
@@ -52,7 +54,7 @@ def _order(a: bytes, a_bar: bytes, b: bytes, s: int, claimed: int) -> int:
         for forest in _forests(n - 1, subtrees):
             u = np.prod([stage for stage, _ in forest], axis=0) * np.ones(s)
             gamma = n * np.prod([g for _, g in forest])
-            if abs(weights @ u - 1 / gamma) > 1e-10:
+            if abs(weights @ u - 1 / gamma) > ORDER_CONDITION_ATOL:
                 return n - 1
             rooted.append((u, gamma))
         subtrees[n] = [(m @ u, gamma) for u, gamma in rooted for m in matrices]

@@ -20,17 +20,11 @@ from .._lagrangian import (
     mass_regular,
     momentum,
 )
-from .._misc import all_finite, sum_is_finite
-from .._nonlinear import (
-    AbstractVIRootFinder,
-    FixedPoint,
-    Newton,
-    singular_threshold,
-    solve,
-    symmetric_extremes,
-    tree_size,
-)
+from .._misc import all_finite, sum_is_finite, tree_size
 from .._private_api import unvmap_any
+from .._root_finders import AbstractVIRootFinder, FixedPoint, Newton, solve
+from .._spectrum import symmetric_extremes
+from .._tolerance import FIXED_POINT_STEPS_FACTOR, singular_threshold
 from .base import MethodStep, StepInputs
 
 
@@ -184,7 +178,7 @@ def solve_step(
             residual,
             guess,
             FixedPoint(),
-            3 * max_steps,
+            FIXED_POINT_STEPS_FACTOR * max_steps,
             preconditioner=inverse_mass,
         )
         failed = fixed.result != dfx.RESULTS.successful

@@ -42,6 +42,7 @@ from .._lagrangian import (
     momentum_reads_position,
 )
 from .._space import is_euclidean
+from .._tolerance import COEFFICIENT_ATOL, ORDER_CONDITION_ATOL, PRODUCT_TOL
 from .base import AbstractSymmetricSolver, StepInputs
 from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC, SYMMETRIC_POSITIVE
 from .rule import rule_increments, rule_residual, rule_work
@@ -107,9 +108,9 @@ class VPRKTableau:
             raise ValueError(
                 f"VPRK tableau: order must be a positive int, got {self.order!r}."
             )
-        if not np.allclose(self.a.sum(axis=1), self.c, atol=1e-13):
+        if not np.allclose(self.a.sum(axis=1), self.c, atol=COEFFICIENT_ATOL):
             raise ValueError("VPRK tableau: the nodes c must be the row sums of a.")
-        if not np.isclose(self.b.sum(), 1.0, atol=1e-13):
+        if not np.isclose(self.b.sum(), 1.0, atol=COEFFICIENT_ATOL):
             raise ValueError("VPRK tableau: the weights b must sum to 1.")
         if np.any(self.b == 0):
             raise ValueError("VPRK tableau: every weight b_i must be non-zero.")
@@ -118,7 +119,7 @@ class VPRKTableau:
             + (self.b[:, None] * self.a).T
             - self.b[:, None] * self.b[None, :]
         )
-        if np.max(np.abs(defect)) > 1e-12:
+        if np.max(np.abs(defect)) > PRODUCT_TOL:
             raise ValueError(
                 "VPRK tableau is not symplectic: b_i abar_ij + b_j a_ji != b_i b_j "
                 f"(largest defect {np.max(np.abs(defect)):.1e})."
@@ -130,7 +131,7 @@ class VPRKTableau:
         quadrature = [
             k
             for k in range(checked + 1, self.order + 1)
-            if abs(self.b @ self.c ** (k - 1) - 1 / k) > 1e-10
+            if abs(self.b @ self.c ** (k - 1) - 1 / k) > ORDER_CONDITION_ATOL
         ]
         if met < checked or quadrature:
             failed = met + 1 if met < checked else quadrature[0]
@@ -151,10 +152,14 @@ class VPRKTableau:
         $\bar a$)."""
         rev = slice(None, None, -1)
         return bool(
-            np.allclose(self.c[rev], 1 - self.c, atol=1e-13)
-            and np.allclose(self.b[rev], self.b, atol=1e-13)
-            and np.allclose(self.a[rev, rev] + self.a, self.b[None], atol=1e-13)
-            and np.allclose(self.a_bar[rev, rev] + self.a_bar, self.b[None], atol=1e-13)
+            np.allclose(self.c[rev], 1 - self.c, atol=COEFFICIENT_ATOL)
+            and np.allclose(self.b[rev], self.b, atol=COEFFICIENT_ATOL)
+            and np.allclose(
+                self.a[rev, rev] + self.a, self.b[None], atol=COEFFICIENT_ATOL
+            )
+            and np.allclose(
+                self.a_bar[rev, rev] + self.a_bar, self.b[None], atol=COEFFICIENT_ATOL
+            )
         )
 
     def _key(self):

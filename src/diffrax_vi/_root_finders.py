@@ -1,4 +1,4 @@
-r"""The nonlinear solves of the implicit steps and of the inverse Legendre map.
+r"""The root finders of the implicit steps and of the inverse Legendre map.
 
 Every equation solved here balances momenta, $r(w) = a(w) - b(w) = 0$, and its
 residual function returns, beside $r$, the size of the terms it balances,
@@ -20,6 +20,7 @@ them, reports how they ended, and differentiates through the root implicitly:
   for separable Lagrangians: one force evaluation per iteration, no Jacobian.
 """
 
+import abc
 from collections.abc import Callable
 from typing import ClassVar
 
@@ -31,79 +32,22 @@ import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import lineax as lx
-import numpy as np
 import optimistix as optx
 from equinox import AbstractVar
 from jaxtyping import Array, Int, PyTree, Scalar
 
-from ._misc import tree_max_abs, tree_sub
+from ._linear import krylov_solve, pivot_ratio, unrolled_lu_solve
+from ._misc import tree_dtype, tree_size, tree_sub
 from ._private_api import unvmap_any
-
-
-# Symmetric eigenvalue problems and linear solves with d2L/dv2 of at most this many
-# unknowns are done densely (exact extremes, one factorisation).
-DENSE_MAX = 64
-
-# Newton's method factorises the dense Jacobian of at most this many unknowns, and
-# goes matrix-free beyond: the Jacobian costs n products, while a BiCGStab or CG
-# solve of a well-conditioned step takes a few. Measured per step of MidpointVI on
-# the generic chain / the bead wire: 18 / 94 us dense against 12 / 34 us Krylov at
-# n = 8, 111 / 1026 against 42 / 256 at n = 64 (`benchmarks/scaling.py`). Small
-# systems keep the dense solve, whose pivots also detect a singular Jacobian.
-NEWTON_DENSE_MAX = 16
-
-
-def tree_size(tree: PyTree) -> int:
-    return sum(np.size(x) for x in jtu.tree_leaves(tree))
-
-
-def tree_dtype(tree: PyTree):
-    return jnp.result_type(*jtu.tree_leaves(tree))
-
-
-def scaled_norm(f: PyTree, scale: PyTree) -> Scalar:
-    """`max |f| / s`, the dimensionless size of a residual (0 where `f = s = 0`).
-
-    Component by component, so that coordinates in different units are each measured
-    against their own terms; but never against less than `64 sqrt(eps)` of the largest
-    term: a component whose terms cancel (a momentum `p = M v + A(q)` that is zero
-    while `M v` is not) keeps the round-off of the others in its residual, which
-    its own vanishing scale must not magnify. Invariant under any common change of
-    units."""
-    leaves = jtu.tree_leaves(f)
-    scales = jtu.tree_leaves(scale)
-    eps = jnp.finfo(jnp.result_type(*leaves)).eps
-    peak = jnp.max(jnp.stack([jnp.max(si, initial=0.0) for si in scales]))
-    floor = 64 * jnp.sqrt(eps) * peak
-    ratios = []
-    for fi, si in zip(leaves, scales):
-        si = jnp.maximum(si, floor)
-        ratios.append(jnp.max(jnp.abs(fi) / jnp.where(si > 0, si, 1), initial=0.0))
-    return jnp.max(jnp.stack(ratios))
-
-
-def newton_tolerance(dtype) -> float:
-    """`sqrt(eps)`: once a Newton residual is below it, relative to the terms it
-    balances, the next update leaves an error at round-off."""
-    return float(jnp.finfo(dtype).eps) ** 0.5
-
-
-def singular_threshold(n: int, dtype) -> float:
-    """A matrix whose smallest pivot or eigenvalue is below this fraction of its
-    largest is singular to working precision."""
-    return n * float(jnp.finfo(dtype).eps)
-
-
-def check_fraction(owner: str, name: str, value) -> None:
-    """A `ValueError` unless `value` is `None`, traced, or a number in (0, 1): a
-    relative tolerance or a contraction rate."""
-    if value is None or isinstance(value, jax.core.Tracer):
-        return
-    if not (jnp.ndim(value) == 0 and 0 < float(value) < 1):
-        raise ValueError(
-            f"{owner}({name}=...) must be a number between 0 and 1 (exclusive); got "
-            f"{value!r}."
-        )
+from ._tolerance import (
+    check_fraction,
+    KRYLOV_FLOOR,
+    MAX_HALVINGS,
+    newton_is_dense,
+    newton_tolerance,
+    ROUNDOFF_RESIDUAL,
+    scaled_norm,
+)
 
 
 class AbstractVIRootFinder(optx.AbstractRootFinder):
@@ -125,15 +69,23 @@ class AbstractVIRootFinder(optx.AbstractRootFinder):
     def __check_init__(self):
         check_fraction(type(self).__name__, "rtol", self.rtol)
 
+    @abc.abstractmethod
     def tolerance(self, y: PyTree) -> float:
-        return newton_tolerance(tree_dtype(y)) if self.rtol is None else self.rtol
+        """The dimensionless tolerance for unknowns like `y`."""
 
+    @abc.abstractmethod
     def carry_init(self, y: PyTree) -> PyTree:
         """What the first solve starts from and hands on to the next."""
-        return None
 
+    @abc.abstractmethod
     def final_carry(self, state) -> PyTree:
-        return None
+        """What a solve that ended in `state` hands on to the next."""
+
+    @abc.abstractmethod
+    def pivot_ratio(self, state) -> Scalar:
+        """The smallest over the largest pivot of the last dense factorisation of a
+        solve that ended in `state` (1 if it made none): the step's test of a
+        singular Jacobian."""
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
         return y, aux, {}
@@ -173,104 +125,6 @@ def _newton_terminate(tol: float, state: NewtonState):
         ),
     )
     return converged | diverged | failed, result
-
-
-def _pivot_ratio(lu: Array) -> Scalar:
-    pivots = jnp.abs(jnp.diagonal(lu))
-    return jnp.min(pivots) / jnp.max(pivots)
-
-
-def unrolled_lu_solve(matrix: Array, b: Array) -> tuple[Array, Scalar]:
-    """`matrix^-1 b` by Gaussian elimination with partial pivoting, unrolled into
-    XLA operations, and the ratio of the smallest to the largest pivot.
-
-    For Newton's dense solves (at most `NEWTON_DENSE_MAX` unknowns) in place of
-    `lineax.LU`, whose LAPACK call keeps XLA on CPU from compiling the surrounding
-    loop whole: `MidpointVI` on the double pendulum took 7.4 us per step with it and
-    takes 0.8 without (`benchmarks/step_cost.py`)."""
-    n = b.shape[0]
-    a = jnp.concatenate([matrix, b[:, None]], axis=1)
-    for k in range(n):
-        i = k + jnp.argmax(jnp.abs(a[k:, k]))
-        row_k, row_i = a[k], a[i]
-        a = a.at[k].set(row_i).at[i].set(row_k)
-        a = a.at[k + 1 :].add(-(a[k + 1 :, k] / a[k, k])[:, None] * a[k][None, :])
-    x = jnp.zeros_like(b)
-    for k in reversed(range(n)):
-        x = x.at[k].set((a[k, n] - a[k, :n] @ x) / a[k, k])
-    return x, _pivot_ratio(a[:, :n])
-
-
-def _magnitude(tree: PyTree) -> Scalar:
-    """The largest `|x|` over the leaves, or 1 if all are zero: a scale, not
-    differentiated."""
-    size = tree_max_abs(tree)
-    return lax.stop_gradient(jnp.where(size > 0, size, 1))
-
-
-def krylov_solve(
-    matvec: Callable[[PyTree], PyTree],
-    rhs: PyTree,
-    rtol: float | Scalar,
-    tags: frozenset,
-    max_steps: int,
-    preconditioner: PyTree | None = None,
-    guess: PyTree | None = None,
-) -> tuple[PyTree, lx.RESULTS]:
-    """`A^{-1} b` for the operator `matvec`, matrix-free, from the initial `guess`
-    (zero if `None`): conjugate gradients where
-    `tags` say symmetric positive or negative (semi)definite, else BiCGStab, and
-    conjugate gradients on the normal equations where BiCGStab breaks down; to
-    relative accuracy `rtol`, preconditioned by positive diagonal weights
-    `preconditioner`. (lineax's GMRES makes all 20 Arnoldi steps of a cycle before it
-    tests convergence: 20 products where a nearly diagonal Newton matrix needs 2,
-    which made it 8x slower than BiCGStab at 1024 unknowns; and its least-squares
-    solve is a LAPACK call, which even as a branch never taken keeps XLA on CPU from
-    compiling a small loop whole: `MidpointVI` on the 32-bead wire, 58 us per step
-    with a GMRES fallback, 45 us with the normal equations.)
-
-    The solve runs on `A / c` and `b / |b|`, with `c` the size of `A` along `b`:
-    lineax's tests are absolute (GMRES broke down on a right-hand side below about
-    1e-16) and its tolerances componentwise, so the solve must not see the units.
-    In those units `atol = rtol`: a component of the solution that happens to be
-    near zero then does not demand more than `rtol` of the whole (with `atol = 0`,
-    GMRES reported the lucky breakdown of an exactly captured solution as a
-    failure)."""
-    # The guess and the preconditioner do not change the solution, and lineax does
-    # not differentiate its options: their derivatives are dropped.
-    guess, preconditioner = lax.stop_gradient((guess, preconditioner))
-    b_size = _magnitude(rhs)
-    b = jtu.tree_map(lambda x: x / b_size, rhs)
-    weigh = lambda tree: (
-        tree
-        if preconditioner is None
-        else jtu.tree_map(lambda p, x: p * x, preconditioner, tree)
-    )
-    a_size = _magnitude(weigh(matvec(b)))
-    b_struct = jax.eval_shape(lambda: rhs)
-    operator = lx.FunctionLinearOperator(
-        lambda w: jtu.tree_map(lambda x: x / a_size, matvec(w)), b_struct, tags=tags
-    )
-    options = {}
-    if guess is not None:
-        options["y0"] = jtu.tree_map(lambda x: x * (a_size / b_size), guess)
-    if preconditioner is not None:
-        options["preconditioner"] = lx.FunctionLinearOperator(
-            weigh, b_struct, tags=(lx.symmetric_tag, lx.positive_semidefinite_tag)
-        )
-
-    def solve(solver):
-        sol = lx.linear_solve(operator, b, solver, options=options, throw=False)
-        return sol.value, sol.result
-
-    if tags & {lx.positive_semidefinite_tag, lx.negative_semidefinite_tag}:
-        value, result = solve(lx.CG(rtol=rtol, atol=rtol, max_steps=max_steps))
-    else:
-        value, result = solve(lx.BiCGStab(rtol=rtol, atol=rtol, max_steps=max_steps))
-        normal = lx.Normal(lx.CG(rtol=rtol, atol=rtol, max_steps=max_steps))
-        failed = unvmap_any(result != lx.RESULTS.successful)
-        value, result = lax.cond(failed, lambda: solve(normal), lambda: (value, result))
-    return jtu.tree_map(lambda x: x * (b_size / a_size), value), result
 
 
 class Newton(AbstractVIRootFinder):
@@ -321,8 +175,20 @@ class Newton(AbstractVIRootFinder):
     def dense(self, y: PyTree) -> bool:
         """Whether the linear solves are dense LU."""
         if self.linear_solver == "auto":
-            return tree_size(y) <= NEWTON_DENSE_MAX
+            return newton_is_dense(tree_size(y))
         return self.linear_solver == "dense"
+
+    def tolerance(self, y: PyTree) -> float:
+        return newton_tolerance(tree_dtype(y)) if self.rtol is None else self.rtol
+
+    def carry_init(self, y: PyTree) -> PyTree:
+        return None
+
+    def final_carry(self, state: NewtonState) -> PyTree:
+        return None
+
+    def pivot_ratio(self, state: NewtonState) -> Scalar:
+        return state.pivot_ratio
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         return _newton_init(y, options.get("carry"))
@@ -334,7 +200,7 @@ class Newton(AbstractVIRootFinder):
         # iterate of a Lagrangian quadratic in v, or of a linear step equation) is
         # the root to working precision; one more solve could not improve it.
         eps = float(jnp.finfo(tree_dtype(y)).eps)
-        exact = (state.step > 0) & (rho <= 4 * eps)
+        exact = (state.step > 0) & (rho <= ROUNDOFF_RESIDUAL * eps)
 
         def update():
             operator = lx.FunctionLinearOperator(
@@ -352,13 +218,13 @@ class Newton(AbstractVIRootFinder):
                 delta = jax.flatten_util.ravel_pytree(y)[1](flat_delta)
                 result = optx.RESULTS.successful
             else:
-                # Eisenstat-Walker choice 2 (gamma = 0.9, alpha = 2), never asking for
-                # a residual below `64 eps` of the terms, which round-off would not
-                # let the solve reach. The last update (from below the Newton
-                # tolerance) then leaves the residual at round-off, as a dense solve
-                # does: a forcing term bounded below by `tol / rho` stopped it at
-                # about `tol / 2` (4e-9 in float64).
-                floor = 64 * eps
+                # Eisenstat-Walker choice 2 (gamma = 0.9, alpha = 2), never asking
+                # for a residual below `KRYLOV_FLOOR eps` of the terms, which
+                # round-off would not let the solve reach. The last update (from
+                # below the Newton tolerance) then leaves the residual at round-off,
+                # as a dense solve does; a forcing term bounded below by `tol / rho`
+                # would stop it at about `tol / 2`.
+                floor = KRYLOV_FLOOR * eps
                 forcing = jnp.clip(
                     0.9 * (rho / state.rho_prev) ** 2,
                     floor / jnp.maximum(rho, floor),
@@ -408,7 +274,7 @@ class Newton(AbstractVIRootFinder):
 
 
 def _backtrack(fn, y, args, delta, rho, scale):
-    """The first of `y - delta`, `y - delta/2`, ... (at most 40 halvings) whose
+    """The first of `y - delta`, `y - delta/2`, ... (at most `MAX_HALVINGS`) whose
     residual is finite and below `(1 - alpha/4) rho` (Armijo's sufficient decrease),
     both measured against the scale `scale` of the iterate the search starts from: a
     scale that moved with the trial point could make a worse point look better (the
@@ -424,7 +290,7 @@ def _backtrack(fn, y, args, delta, rho, scale):
         alpha, k = carry
         rho_new = trial(alpha)
         bad = ~(jnp.isfinite(rho_new) & (rho_new <= (1 - alpha / 4) * rho))
-        return bad & (k < 40) & (rho > 0)
+        return bad & (k < MAX_HALVINGS) & (rho > 0)
 
     alpha, _ = lax.while_loop(
         rejected, lambda c: (c[0] / 2, c[1] + 1), (jnp.ones_like(rho), 0)
@@ -468,6 +334,12 @@ class SimplifiedNewton(AbstractVIRootFinder):
     def final_carry(self, state: NewtonState) -> PyTree:
         return state.carry
 
+    def tolerance(self, y: PyTree) -> float:
+        return newton_tolerance(tree_dtype(y)) if self.rtol is None else self.rtol
+
+    def pivot_ratio(self, state: NewtonState) -> Scalar:
+        return state.pivot_ratio
+
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         carry = options.get("carry")
         return _newton_init(y, self.carry_init(y) if carry is None else carry)
@@ -494,7 +366,7 @@ class SimplifiedNewton(AbstractVIRootFinder):
             jnp.all(jnp.isfinite(delta)), optx.RESULTS.successful, optx.RESULTS.singular
         )
         new = NewtonState(
-            rho, rho, _pivot_ratio(lu), state.step + 1, result, (lu, piv, fresh)
+            rho, rho, pivot_ratio(lu), state.step + 1, result, (lu, piv, fresh)
         )
         return unravel(flat - delta), new, scale
 
@@ -525,8 +397,8 @@ class FixedPoint(AbstractVIRootFinder):
     **Arguments:**
 
     - `rtol`: the tolerance on an update relative to the size of the terms of the
-        equation; `None` for `64 eps` of the dtype (the iteration converges linearly,
-        so it runs to near round-off).
+        equation; `None` for `64 eps` of the dtype (the iteration converges
+        linearly, so it runs to near round-off).
     - `max_rate`: the slowest contraction per iteration accepted (default 0.5).
     """
 
@@ -539,7 +411,16 @@ class FixedPoint(AbstractVIRootFinder):
     def tolerance(self, y: PyTree) -> float:
         if self.rtol is not None:
             return self.rtol
-        return 64 * float(jnp.finfo(tree_dtype(y)).eps)
+        return KRYLOV_FLOOR * float(jnp.finfo(tree_dtype(y)).eps)
+
+    def carry_init(self, y: PyTree) -> PyTree:
+        return None
+
+    def final_carry(self, state: FixedPointState) -> PyTree:
+        return None
+
+    def pivot_ratio(self, state: FixedPointState) -> Scalar:
+        return jnp.ones((), state.size.dtype)
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         if options.get("preconditioner") is None:
@@ -613,11 +494,10 @@ def solve(
             tags=tags,
             throw=False,
         )
-        ratio = getattr(sol.state, "pivot_ratio", jnp.ones((), dtype))
         return Solved(
             sol.value,
             dfx.RESULTS.promote(sol.result),
-            ratio,
+            root_finder.pivot_ratio(sol.state),
             root_finder.final_carry(sol.state),
         )
 
@@ -634,54 +514,3 @@ def solve(
     return Solved(
         sol.value, dfx.RESULTS.promote(sol.result), jnp.ones((), dtype), carry
     )
-
-
-def lanczos_extremes(
-    matvec: Callable[[Array], Array], n: int, dtype, steps: int = 24
-) -> tuple[Scalar, Scalar]:
-    """Estimates of the smallest and largest eigenvalues of a symmetric operator on
-    `R^n`, from `steps` Lanczos iterations (with full reorthogonalisation) from a
-    fixed start vector: the extreme Ritz values, which converge first."""
-    k = min(steps, n)
-    v0 = jnp.cos(jnp.arange(1, n + 1, dtype=dtype) * 1.2345)  # not an eigenvector
-    v0 = v0 / jnp.linalg.norm(v0)
-    basis = jnp.zeros((k, n), dtype).at[0].set(v0)
-    alphas = jnp.zeros(k, dtype)
-    betas = jnp.zeros(k, dtype)
-
-    def body(j, carry):
-        basis, alphas, betas = carry
-        w = matvec(basis[j])
-        alpha = jnp.dot(w, basis[j])
-        # Full reorthogonalisation against every vector so far (unused rows are 0).
-        w = w - basis.T @ (basis @ w)
-        w = w - basis.T @ (basis @ w)
-        beta = jnp.linalg.norm(w)
-        nxt = jnp.where(beta > 0, w / jnp.where(beta > 0, beta, 1), 0.0)
-        basis = lax.cond(j + 1 < k, lambda: basis.at[j + 1].set(nxt), lambda: basis)
-        return basis, alphas.at[j].set(alpha), betas.at[j].set(beta)
-
-    _, alphas, betas = lax.fori_loop(0, k, body, (basis, alphas, betas))
-    tridiagonal = jnp.diag(alphas) + jnp.diag(betas[:-1], 1) + jnp.diag(betas[:-1], -1)
-    ritz = jnp.linalg.eigvalsh(tridiagonal)
-    return ritz[0], ritz[-1]
-
-
-def symmetric_extremes(matvec: Callable[[Array], Array], n: int, dtype):
-    """The smallest and largest eigenvalues of a symmetric operator on `R^n`, and
-    the smallest in magnitude: exact from the dense matrix up to `DENSE_MAX`, else
-    Lanczos estimates (the smallest magnitude then only among the extreme ones)."""
-    if n <= DENSE_MAX:
-        matrix = jax.vmap(matvec)(jnp.eye(n, dtype=dtype))
-        eigs = jnp.linalg.eigvalsh(0.5 * (matrix + matrix.T))
-        return eigs[0], eigs[-1], jnp.min(jnp.abs(eigs))
-    smallest, largest = lanczos_extremes(matvec, n, dtype)
-    size = jnp.maximum(jnp.abs(smallest), jnp.abs(largest))
-    # An indefinite operator's smallest magnitude is inside the spectrum, which
-    # Lanczos does not resolve: not judged singular.
-    least = jnp.where(
-        jnp.sign(smallest) == jnp.sign(largest),
-        jnp.minimum(jnp.abs(smallest), jnp.abs(largest)),
-        size,
-    )
-    return smallest, largest, least

@@ -1,0 +1,111 @@
+r"""The linear solves of the Newton steps, the linearized steps and the inverse
+Legendre map: an unrolled dense elimination for small systems, and a matrix-free
+Krylov driver, in units that make lineax's absolute tests relative."""
+
+from collections.abc import Callable
+
+import jax
+import jax.lax as lax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import lineax as lx
+from jaxtyping import Array, PyTree, Scalar
+
+from ._misc import tree_max_abs
+from ._private_api import unvmap_any
+
+
+def pivot_ratio(lu: Array) -> Scalar:
+    pivots = jnp.abs(jnp.diagonal(lu))
+    return jnp.min(pivots) / jnp.max(pivots)
+
+
+def unrolled_lu_solve(matrix: Array, b: Array) -> tuple[Array, Scalar]:
+    """`matrix^-1 b` by Gaussian elimination with partial pivoting, unrolled into
+    XLA operations, and the ratio of the smallest to the largest pivot.
+
+    For Newton's dense solves (`newton_is_dense`) in place of `lineax.LU`, whose
+    LAPACK call keeps XLA on CPU from compiling the surrounding loop whole, which
+    costs a small system's step several times its arithmetic
+    (`benchmarks/step_cost.py`)."""
+    n = b.shape[0]
+    a = jnp.concatenate([matrix, b[:, None]], axis=1)
+    for k in range(n):
+        i = k + jnp.argmax(jnp.abs(a[k:, k]))
+        row_k, row_i = a[k], a[i]
+        a = a.at[k].set(row_i).at[i].set(row_k)
+        a = a.at[k + 1 :].add(-(a[k + 1 :, k] / a[k, k])[:, None] * a[k][None, :])
+    x = jnp.zeros_like(b)
+    for k in reversed(range(n)):
+        x = x.at[k].set((a[k, n] - a[k, :n] @ x) / a[k, k])
+    return x, pivot_ratio(a[:, :n])
+
+
+def _magnitude(tree: PyTree) -> Scalar:
+    """The largest `|x|` over the leaves, or 1 if all are zero: a scale, not
+    differentiated."""
+    size = tree_max_abs(tree)
+    return lax.stop_gradient(jnp.where(size > 0, size, 1))
+
+
+def krylov_solve(
+    matvec: Callable[[PyTree], PyTree],
+    rhs: PyTree,
+    rtol: float | Scalar,
+    tags: frozenset,
+    max_steps: int,
+    preconditioner: PyTree | None = None,
+    guess: PyTree | None = None,
+) -> tuple[PyTree, lx.RESULTS]:
+    """`A^{-1} b` for the operator `matvec`, matrix-free, from the initial `guess`
+    (zero if `None`): conjugate gradients where
+    `tags` say symmetric positive or negative (semi)definite, else BiCGStab, and
+    conjugate gradients on the normal equations where BiCGStab breaks down; to
+    relative accuracy `rtol`, preconditioned by positive diagonal weights
+    `preconditioner`. (Not lineax's GMRES: it makes all 20 Arnoldi steps of a cycle
+    before it tests convergence, 20 products where a nearly diagonal Newton matrix
+    needs 2; and its least-squares solve is a LAPACK call, which even as a branch
+    never taken keeps XLA on CPU from compiling a small loop whole.)
+
+    The solve runs on `A / c` and `b / |b|`, with `c` the size of `A` along `b`:
+    lineax's tests are absolute (GMRES broke down on a right-hand side below about
+    1e-16) and its tolerances componentwise, so the solve must not see the units.
+    In those units `atol = rtol`: a component of the solution that happens to be
+    near zero then does not demand more than `rtol` of the whole (with `atol = 0`,
+    GMRES reported the lucky breakdown of an exactly captured solution as a
+    failure)."""
+    # The guess and the preconditioner do not change the solution, and lineax does
+    # not differentiate its options: their derivatives are dropped.
+    guess, preconditioner = lax.stop_gradient((guess, preconditioner))
+    b_size = _magnitude(rhs)
+    b = jtu.tree_map(lambda x: x / b_size, rhs)
+    weigh = lambda tree: (
+        tree
+        if preconditioner is None
+        else jtu.tree_map(lambda p, x: p * x, preconditioner, tree)
+    )
+    a_size = _magnitude(weigh(matvec(b)))
+    b_struct = jax.eval_shape(lambda: rhs)
+    operator = lx.FunctionLinearOperator(
+        lambda w: jtu.tree_map(lambda x: x / a_size, matvec(w)), b_struct, tags=tags
+    )
+    options = {}
+    if guess is not None:
+        options["y0"] = jtu.tree_map(lambda x: x * (a_size / b_size), guess)
+    if preconditioner is not None:
+        options["preconditioner"] = lx.FunctionLinearOperator(
+            weigh, b_struct, tags=(lx.symmetric_tag, lx.positive_semidefinite_tag)
+        )
+
+    def solve(solver):
+        sol = lx.linear_solve(operator, b, solver, options=options, throw=False)
+        return sol.value, sol.result
+
+    if tags & {lx.positive_semidefinite_tag, lx.negative_semidefinite_tag}:
+        value, result = solve(lx.CG(rtol=rtol, atol=rtol, max_steps=max_steps))
+    else:
+        value, result = solve(lx.BiCGStab(rtol=rtol, atol=rtol, max_steps=max_steps))
+        normal = lx.Normal(lx.CG(rtol=rtol, atol=rtol, max_steps=max_steps))
+        failed = unvmap_any(result != lx.RESULTS.successful)
+        value, result = lax.cond(failed, lambda: solve(normal), lambda: (value, result))
+    return jtu.tree_map(lambda x: x * (b_size / a_size), value), result
