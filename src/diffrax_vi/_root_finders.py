@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import lineax as lx
 import optimistix as optx
-from equinox import AbstractVar
+from equinox import AbstractClassVar, AbstractVar
 from jaxtyping import Array, Int, PyTree, Scalar
 
 from ._linear import krylov_solve, pivot_ratio, unrolled_lu_solve
@@ -65,6 +65,10 @@ class AbstractVIRootFinder(optx.AbstractRootFinder):
     # residual relative to the size of its terms, in the max norm.
     atol: ClassVar[float] = 0.0
     norm: ClassVar[Callable] = staticmethod(optx.max_norm)
+    # Whether converging certifies that a step's root continues the motion (the
+    # iteration contracts towards it from the guess), so that no fold test is
+    # needed.
+    certifies_continuation: AbstractClassVar[bool]
 
     def __check_init__(self):
         check_fraction(type(self).__name__, "rtol", self.rtol)
@@ -154,6 +158,7 @@ class Newton(AbstractVIRootFinder):
     - `krylov_max_steps`: the iterations one Krylov solve may take.
     """
 
+    certifies_continuation: ClassVar[bool] = False
     rtol: float | None = None
     linear_solver: str | lx.AbstractLinearSolver = eqx.field(
         static=True, default="auto"
@@ -315,6 +320,7 @@ class SimplifiedNewton(AbstractVIRootFinder):
         (default 0.25).
     """
 
+    certifies_continuation: ClassVar[bool] = False
     rtol: float | None = None
     kappa: float = 0.25
 
@@ -402,6 +408,7 @@ class FixedPoint(AbstractVIRootFinder):
     - `max_rate`: the slowest contraction per iteration accepted (default 0.5).
     """
 
+    certifies_continuation: ClassVar[bool] = True
     rtol: float | None = None
     max_rate: float = 0.5
 

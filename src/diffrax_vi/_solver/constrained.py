@@ -21,7 +21,6 @@ from collections.abc import Callable
 import diffrax as dfx
 import equinox as eqx
 import jax.numpy as jnp
-import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._constraint import (
@@ -34,14 +33,21 @@ from .._constraint import (
 )
 from .._custom_types import P, Q
 from .._misc import tree_add
-from .._root_finders import AbstractVIRootFinder
 from .._space import retract
 from .base import MethodStep, StepInputs
-from .unknowns import check_start, solve_step, Unknowns
+from .unknowns import (
+    AbstractStepRootFinding,
+    check_start,
+    solve_step,
+    StepEquations,
+    Unknowns,
+)
 
 
 def init_constrained(
-    step: StepInputs, stage_guess: Callable[[PyTree], PyTree], root_finder
+    step: StepInputs,
+    stage_guess: Callable[[PyTree], PyTree],
+    root_finding: AbstractStepRootFinding,
 ) -> Unknowns:
     """The state of a constrained implicit method before its first step: the
     unconstrained unknowns and the multipliers (zero), after checking that the start
@@ -52,11 +58,7 @@ def init_constrained(
     guess = check_constraint_start(
         step.term, step.t0, step.q0, step.p0, start.v0, step.args, guess
     )
-    carry = (
-        root_finder.carry_init(guess)
-        if isinstance(root_finder, AbstractVIRootFinder)
-        else None
-    )
+    carry = root_finding.carry_init(guess)
     return Unknowns(guess, guess, carry, start.positive, start.result)
 
 
@@ -66,7 +68,7 @@ def constrained_step(
     made_jump: Bool[ArrayLike, ""],
     residual_at: Callable[[StepInputs, PyTree], tuple[PyTree, PyTree]],
     increments_at: Callable[[StepInputs, PyTree], tuple[Q, P]],
-    root_finder: optx.AbstractRootFinder | None,
+    root_finding: AbstractStepRootFinding,
     max_steps: int,
     work_at: Callable[[StepInputs, PyTree], Array] | None = None,
 ) -> MethodStep:
@@ -106,22 +108,16 @@ def constrained_step(
         dq, dp = increments_at(shifted(lam), w)
         return dq, tree_add(dp, push(lam))
 
-    out = solve_step(
-        step,
-        state,
-        made_jump,
+    equations = StepEquations(
         residual,
         increments,
-        root_finder,
-        max_steps,
-        None,
-        frozenset(),
-        # The joint Jacobian of a saddle-point system is indefinite: no curvature test.
-        None,
-        None
+        # The joint Jacobian of a saddle-point system is indefinite: no curvature
+        # test (no `fold_residual`).
+        work=None
         if work_at is None
         else (lambda unknowns: work_at(shifted(unknowns[1]), unknowns[0])),
     )
+    out = solve_step(step, state, made_jump, equations, root_finding, max_steps)
     q1 = retract(space, q0, out.dq)
     projected = project_momentum(step.term, t1, q1, tree_add(step.p0, out.dp), args)
     result = dfx.RESULTS.where(

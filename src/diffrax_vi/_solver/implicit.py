@@ -24,7 +24,13 @@ from .base import (
     without_force,
 )
 from .constrained import constrained_step, init_constrained
-from .unknowns import init_unknowns, solve_step, Unknowns
+from .unknowns import (
+    init_unknowns,
+    root_finding,
+    solve_step,
+    StepEquations,
+    Unknowns,
+)
 
 
 class AbstractImplicitVI(
@@ -82,10 +88,12 @@ class AbstractImplicitVI(
                     "`Composition(MidpointVI(), 'kahan_li8')`)."
                 )
             return init_constrained(
-                step, lambda v: self.stage_guess(step, v), self.root_finder
+                step,
+                lambda v: self.stage_guess(step, v),
+                root_finding(self.root_finder),
             )
         return init_unknowns(
-            step, lambda v: self.stage_guess(step, v), self.root_finder
+            step, lambda v: self.stage_guess(step, v), root_finding(self.root_finder)
         )
 
     def method_step(
@@ -98,24 +106,29 @@ class AbstractImplicitVI(
                 made_jump,
                 self.stage_residual,
                 self.stage_increments,
-                self.root_finder,
+                root_finding(self.root_finder),
                 self.root_find_max_steps,
                 None if step.term.force is None else self.stage_work,
             )
+        equations = StepEquations(
+            residual=lambda w: self.stage_residual(step, w),
+            increments=lambda w: self.stage_increments(step, w),
+            inverse_mass=self.inverse_mass(step),
+            tags=self.jacobian_tags(step),
+            fold_residual=(lambda w: self.stage_residual(without_force(step), w))
+            if self.one_stage
+            else None,
+            work=None
+            if step.term.force is None
+            else (lambda w: self.stage_work(step, w)),
+        )
         return solve_step(
             step,
             state,
             made_jump,
-            lambda w: self.stage_residual(step, w),
-            lambda w: self.stage_increments(step, w),
-            self.root_finder,
+            equations,
+            root_finding(self.root_finder),
             self.root_find_max_steps,
-            self.inverse_mass(step),
-            self.jacobian_tags(step),
-            (lambda w: self.stage_residual(without_force(step), w))
-            if self.one_stage
-            else None,
-            None if step.term.force is None else (lambda w: self.stage_work(step, w)),
         )
 
     @property

@@ -27,7 +27,13 @@ from .constrained import constrained_step, init_constrained
 from .implicit import IMPLICIT_ARGS_DOC
 from .rule import rule_increments, rule_residual, rule_work
 from .stormer_verlet import kick_drift_kick, poisoned_force
-from .unknowns import init_unknowns, solve_step, Unknowns
+from .unknowns import (
+    init_unknowns,
+    root_finding,
+    solve_step,
+    StepEquations,
+    Unknowns,
+)
 
 
 _RULE = TrapezoidalRule()
@@ -120,8 +126,8 @@ class TrapezoidalVI(
             mass = broadcast_mass(lagrangian.mass, step.p0)
             return ExplicitState(force, mass_regular(mass, step.p0))
         if step.term.constraint is not None:
-            return init_constrained(step, lambda v: v, self.root_finder)
-        return init_unknowns(step, lambda v: v, self.root_finder)
+            return init_constrained(step, lambda v: v, root_finding(self.root_finder))
+        return init_unknowns(step, lambda v: v, root_finding(self.root_finder))
 
     def method_step(
         self, step: StepInputs, state: PyTree, made_jump: Bool[ArrayLike, ""]
@@ -137,23 +143,24 @@ class TrapezoidalVI(
                 made_jump,
                 _residual,
                 _increments,
-                self.root_finder,
+                root_finding(self.root_finder),
                 self.root_find_max_steps,
                 None if step.term.force is None else _work,
             )
+        equations = StepEquations(
+            residual=lambda v: _residual(step, v),
+            increments=lambda v: _increments(step, v),
+            # One velocity: the curvature of the discrete action tests the root.
+            fold_residual=lambda v: _residual(without_force(step), v),
+            work=None if step.term.force is None else (lambda v: _work(step, v)),
+        )
         return solve_step(
             step,
             state,
             made_jump,
-            lambda v: _residual(step, v),
-            lambda v: _increments(step, v),
-            self.root_finder,
+            equations,
+            root_finding(self.root_finder),
             self.root_find_max_steps,
-            None,
-            frozenset(),
-            # One velocity: the curvature of the discrete action tests the root.
-            lambda v: _residual(without_force(step), v),
-            None if step.term.force is None else (lambda v: _work(step, v)),
         )
 
     def _explicit_step(

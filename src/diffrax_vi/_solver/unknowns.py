@@ -2,6 +2,9 @@ r"""The unknowns of one implicit step: the guess extrapolated from the last two 
 their solve, and the checks of the start and of the root found (that it continues
 the motion)."""
 
+import abc
+from collections.abc import Callable
+
 import diffrax as dfx
 import equinox as eqx
 import jax
@@ -22,7 +25,7 @@ from .._lagrangian import (
 )
 from .._misc import all_finite, sum_is_finite, tree_size
 from .._private_api import unvmap_any
-from .._root_finders import AbstractVIRootFinder, FixedPoint, Newton, solve
+from .._root_finders import AbstractVIRootFinder, FixedPoint, Newton, solve, Solved
 from .._spectrum import symmetric_extremes
 from .._tolerance import FIXED_POINT_STEPS_FACTOR, singular_threshold
 from .base import MethodStep, StepInputs
@@ -94,15 +97,136 @@ class Unknowns(eqx.Module):
     start: dfx.RESULTS
 
 
-def init_unknowns(step: StepInputs, stage_guess, root_finder) -> Unknowns:
+class StepEquations(eqx.Module):
+    """The equations of one implicit step, as its method builds them.
+
+    - `residual(w) -> (r, s)`: the equations in the unknowns `w` and the size of the
+      terms each balances.
+    - `increments(w) -> (dq, dp)`: the step the unknowns give.
+    - `inverse_mass`: one over the mass of each unknown for a separable Lagrangian
+      (the fixed-point iteration's preconditioner), or `None`.
+    - `tags`: `lineax` tags of the Jacobian of `residual`.
+    - `fold_residual`: where the unknowns are one velocity, the residual of the same
+      step without applied forces, whose Jacobian is the Hessian of the discrete
+      action up to an antisymmetric part: its curvature along the Newton path tells
+      a root that continues the motion from one across a fold. A force has no
+      action (strong damping in a composition's backward substep makes the full
+      Jacobian indefinite at the one root of a linear step), so it is left out of
+      the test. `None` for equations with no such structure.
+    - `work(w)`: the work of the step's discrete applied forces, or `None` without
+      forces.
+    """
+
+    residual: Callable[[PyTree], tuple[PyTree, PyTree]]
+    increments: Callable[[PyTree], tuple[PyTree, PyTree]]
+    inverse_mass: PyTree | None = None
+    tags: frozenset = eqx.field(static=True, default=frozenset())
+    fold_residual: Callable[[PyTree], tuple[PyTree, PyTree]] | None = None
+    work: Callable[[PyTree], Array] | None = None
+
+
+class AbstractStepRootFinding(eqx.Module):
+    """How the equations of an implicit step are solved: a root-finding policy."""
+
+    @abc.abstractmethod
+    def carry_init(self, guess: PyTree) -> PyTree:
+        """What the first step's solve starts from (a factorisation), or `None`."""
+
+    @abc.abstractmethod
+    def solve(
+        self, equations: StepEquations, guess: PyTree, carry: PyTree, max_steps: int
+    ) -> tuple[Solved, bool]:
+        """The root from `guess`, and whether its convergence alone certifies that
+        the root continues the motion (else the step tests the fold)."""
+
+
+class GivenRootFinder(AbstractStepRootFinding):
+    """The root finder a user chose, run as it is."""
+
+    root_finder: optx.AbstractRootFinder
+
+    def carry_init(self, guess: PyTree) -> PyTree:
+        if isinstance(self.root_finder, AbstractVIRootFinder):
+            return self.root_finder.carry_init(guess)
+        return None
+
+    def solve(self, equations, guess, carry, max_steps):
+        solved = solve(
+            equations.residual,
+            guess,
+            self.root_finder,
+            max_steps,
+            preconditioner=equations.inverse_mass,
+            tags=equations.tags,
+            carry=carry,
+        )
+        certified = isinstance(self.root_finder, AbstractVIRootFinder) and (
+            self.root_finder.certifies_continuation
+        )
+        return solved, certified
+
+
+class FixedPointThenNewton(AbstractStepRootFinding):
+    """The default policy: for a separable Lagrangian (`inverse_mass` given), the
+    fixed-point iteration (`fixed_point_steps_factor` times the solver's
+    `root_find_max_steps`, as it converges linearly), falling back to Newton's
+    method from the same guess where it does not contract (stiff steps); else
+    Newton's method.
+
+    Newton's method is matrix-free by conjugate gradients at every size where the
+    Jacobian is symmetric (the midpoint step of a Lagrangian whose momentum is free
+    of `q`), which keeps the loop free of LAPACK calls: XLA on CPU never compiles a
+    loop that contains one whole, even where the branch is never taken. Other
+    equations keep the dense LU of small systems (BiCGStab with its fallback costs
+    seconds of compilation for a branch that stiff steps alone take)."""
+
+    fixed_point_steps_factor: int = eqx.field(
+        static=True, default=FIXED_POINT_STEPS_FACTOR
+    )
+
+    def carry_init(self, guess: PyTree) -> PyTree:
+        return None
+
+    def solve(self, equations, guess, carry, max_steps):
+        conjugate_gradients = lx.positive_semidefinite_tag in equations.tags
+        newton = lambda: solve(
+            equations.residual,
+            guess,
+            Newton(linear_solver="krylov" if conjugate_gradients else "auto"),
+            max_steps,
+            preconditioner=equations.inverse_mass,
+            tags=equations.tags,
+        )
+        if equations.inverse_mass is None:
+            return newton(), False
+        fixed = solve(
+            equations.residual,
+            guess,
+            FixedPoint(),
+            self.fixed_point_steps_factor * max_steps,
+            preconditioner=equations.inverse_mass,
+        )
+        failed = fixed.result != dfx.RESULTS.successful
+        return lax.cond(unvmap_any(failed), newton, lambda: fixed), False
+
+
+def root_finding(
+    root_finder: optx.AbstractRootFinder | None,
+) -> AbstractStepRootFinding:
+    """The policy of a solver's `root_finder` argument: `None` is the default
+    policy."""
+    if root_finder is None:
+        return FixedPointThenNewton()
+    return GivenRootFinder(root_finder)
+
+
+def init_unknowns(
+    step: StepInputs, stage_guess, root_finding: AbstractStepRootFinding
+) -> Unknowns:
     """The state of an implicit method before its first step."""
     start = check_start(step)
     guess = stage_guess(start.v0)
-    carry = (
-        root_finder.carry_init(guess)
-        if isinstance(root_finder, AbstractVIRootFinder)
-        else None
-    )
+    carry = root_finding.carry_init(guess)
     return Unknowns(guess, guess, carry, start.positive, start.result)
 
 
@@ -116,77 +240,17 @@ def solve_step(
     step: StepInputs,
     state: Unknowns,
     made_jump: Bool[ArrayLike, ""],
-    residual,
-    increments,
-    root_finder: optx.AbstractRootFinder | None,
+    equations: StepEquations,
+    root_finding: AbstractStepRootFinding,
     max_steps: int,
-    inverse_mass: PyTree | None,
-    tags: frozenset,
-    fold_residual,
-    work=None,
 ) -> MethodStep:
-    """One implicit step: solve `residual(w) = 0` (with `residual` returning the
-    residual and the size of its terms) from the extrapolated guess, check the root,
-    and take the step's `increments(w)` (and, given `work`, the work `work(w)` of
-    its discrete forces).
-
-    `fold_residual`, where the unknowns are one velocity, is the residual of the
-    same step without applied forces, whose Jacobian is the Hessian of the discrete
-    action up to an antisymmetric part: its curvature along the Newton path tells a
-    root that continues the motion from one across a fold. A force has no action
-    (strong damping in a composition's backward substep makes the full Jacobian
-    indefinite at the one root of a linear step), so it is left out of the test.
-    `None` for stage equations with no such structure.
-
-    `root_finder=None` chooses: for a separable Lagrangian (`inverse_mass` given),
-    the fixed-point iteration, falling back to Newton's method from the same guess
-    where it does not contract (stiff steps); else Newton's method. The midpoint
-    fallback is matrix-free at every size: a dense LU is a LAPACK call, and a loop
-    containing one is never compiled whole by XLA on CPU, even where the branch is
-    never taken (`MidpointVI` on Kepler: 1.05 against 0.21 us per step)."""
-    # Conjugate gradients where the Newton matrix is symmetric (the midpoint step of
-    # a Lagrangian whose momentum is free of q) keep the loop free of LAPACK calls
-    # at every size; other stage equations keep the dense LU of small systems
-    # (BiCGStab with its fallback costs seconds of compilation for a branch that
-    # stiff steps alone take).
-    conjugate_gradients = lx.positive_semidefinite_tag in tags
+    """One implicit step: solve `equations` from the extrapolated guess, check the
+    root, and take the step's increments (and work, with forces)."""
     # Second-order extrapolation; after a jump only the last step is trusted.
     guess = jtu.tree_map(
         lambda a, b: jnp.where(made_jump, a, 2 * a - b), state.last, state.before_last
     )
-    newton = lambda: solve(
-        residual,
-        guess,
-        Newton(linear_solver="krylov" if conjugate_gradients else "auto"),
-        max_steps,
-        preconditioner=inverse_mass,
-        tags=tags,
-    )
-    if root_finder is not None:
-        solved = solve(
-            residual,
-            guess,
-            root_finder,
-            max_steps,
-            preconditioner=inverse_mass,
-            tags=tags,
-            carry=state.carry,
-        )
-        checked = not isinstance(root_finder, FixedPoint)
-    elif inverse_mass is not None:
-        fixed = solve(
-            residual,
-            guess,
-            FixedPoint(),
-            FIXED_POINT_STEPS_FACTOR * max_steps,
-            preconditioner=inverse_mass,
-        )
-        failed = fixed.result != dfx.RESULTS.successful
-        solved = lax.cond(unvmap_any(failed), newton, lambda: fixed)
-        checked = True
-    else:
-        solved = newton()
-        checked = True
+    solved, certified = root_finding.solve(equations, guess, state.carry, max_steps)
     unknowns = solved.value
     result = solved.result
     # A NaN or inf applied force (or Lagrangian) makes the residual non-finite at a
@@ -195,29 +259,31 @@ def solve_step(
     failed = result != dfx.RESULTS.successful
     poisoned = lax.cond(
         unvmap_any(failed),
-        lambda: ~all_finite(unknowns) | ~all_finite(residual(guess)[0]),
+        lambda: ~all_finite(unknowns) | ~all_finite(equations.residual(guess)[0]),
         lambda: jnp.array(False),
     )
     result = dfx.RESULTS.where(
         failed & poisoned & all_finite(guess), dfx.RESULTS.nonfinite, result
     )
-    if checked and fold_residual is not None:
+    if not certified and equations.fold_residual is not None:
         # The root must continue the motion: along the way from the guess the Newton
         # matrix keeps the positive curvature that d2L/dv2 has as h -> 0. A root
         # across a fold (the bound pendulum at h = 5 lands on an energy of 82) has
-        # the opposite. The fixed-point iteration certifies this by converging.
+        # the opposite.
         d = jtu.tree_map(lambda a, b: a - b, unknowns, guess)
-        spurious = state.positive & (_curvature(fold_residual, unknowns, d) < 0)
+        curvature = _curvature(equations.fold_residual, unknowns, d)
+        spurious = state.positive & (curvature < 0)
         result = dfx.RESULTS.where(
             (result == dfx.RESULTS.successful) & spurious,
             dfx.RESULTS.nonlinear_divergence,
             result,
         )
-    dq, dp = increments(unknowns)
+    dq, dp = equations.increments(unknowns)
     result = start_result(step, all_finite(state.last), result, state.start)
     v = jtu.tree_map(lambda x: x / step.h, dq)
     new = Unknowns(unknowns, state.last, solved.carry, state.positive, state.start)
-    return MethodStep(dq, dp, v, new, result, None if work is None else work(unknowns))
+    work = None if equations.work is None else equations.work(unknowns)
+    return MethodStep(dq, dp, v, new, result, work)
 
 
 def start_result(
