@@ -12,7 +12,7 @@ import latex2mathml.converter
 
 def _row(name, solver, explicit, forces):
     order = solver.order(None)
-    symmetric = isinstance(solver, dvi.AbstractSymmetricSolver)
+    symmetric = isinstance(solver, dvi.AbstractComposableSolver) and solver.symmetric
     symplectic = isinstance(solver, dvi.AbstractSymplecticSolver)
     return (
         f"| `{name}` | {order if order is not None else '2, or 1 (see below)'} | "

@@ -94,6 +94,10 @@ def test_non_symmetric_tableau_cannot_be_composed():
     a_bar = b[None, :] - (b[None, :] * a.T) / b[:, None]
     radau = dvi.VPRKTableau(a=a, a_bar=a_bar, b=b, c=np.array([1 / 3, 1.0]), order=3)
     assert not radau.symmetric
+    # Symmetry is the tableau's, not the class's: the same VPRK class is symmetric
+    # with a symmetric tableau.
+    assert not dvi.VPRK(radau).symmetric
+    assert dvi.VPRK(dvi.GaussVPRK(2).tableau).symmetric
     with pytest.raises(ValueError, match="not symmetric"):
         dvi.Composition(dvi.VPRK(radau), "yoshida4")
 
@@ -147,7 +151,7 @@ def test_wrappers_are_neither_symplectic_nor_composable():
     assert isinstance(half, dfx.AbstractSolver)
     # ... but step doubling with adaptive steps is not symplectic.
     assert not isinstance(half, dvi.AbstractSymplecticSolver)
-    assert not isinstance(half, dvi.AbstractSymmetricSolver)
+    assert not isinstance(half, dvi.AbstractComposableSolver)
     with pytest.raises(ValueError, match="not one"):
         dvi.Composition(half, "yoshida4")
     assert isinstance(dvi.MidpointVI(), dvi.AbstractSymplecticSolver)

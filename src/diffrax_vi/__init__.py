@@ -37,8 +37,8 @@ from ._scan import (
 from ._so2 import SO2 as SO2
 from ._so3 import SO3 as SO3
 from ._solver import (
+    AbstractComposableSolver as AbstractComposableSolver,
     AbstractImplicitVI as AbstractImplicitVI,
-    AbstractSymmetricSolver as AbstractSymmetricSolver,
     AbstractSymplecticSolver as AbstractSymplecticSolver,
     AbstractVariationalSolver as AbstractVariationalSolver,
     AbstractVPRK as AbstractVPRK,

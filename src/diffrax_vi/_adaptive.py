@@ -28,7 +28,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, PyTree
 from ._custom_types import Args, RealScalarLike
 from ._lagrangian import AbstractLagrangian, AbstractSeparableLagrangian
 from ._private_api import WrapTerm
-from ._solver.vprk import is_symmetric
+from ._solver.base import is_symmetric
 
 
 def _unwrap(terms: PyTree) -> PyTree:

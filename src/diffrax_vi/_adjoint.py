@@ -33,7 +33,7 @@ from ._private_api import (
     save_y,
     WrapTerm,
 )
-from ._solver.vprk import is_symmetric
+from ._solver.base import is_symmetric
 from ._term import LagrangianTerm
 
 

@@ -1,5 +1,5 @@
 from .base import (
-    AbstractSymmetricSolver as AbstractSymmetricSolver,
+    AbstractComposableSolver as AbstractComposableSolver,
     AbstractSymplecticSolver as AbstractSymplecticSolver,
     AbstractVariationalSolver as AbstractVariationalSolver,
 )

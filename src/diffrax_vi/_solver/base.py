@@ -56,11 +56,18 @@ class AbstractSymplecticSolver(dfx.AbstractSolver, **_markers):
     """
 
 
-class AbstractSymmetricSolver(dfx.AbstractSolver, **_markers):
-    """Marker for solvers whose step is symmetric (time-reversible): a step of `h`
-    followed by a step of `-h` returns to the start. Only these can be raised to
-    higher order by [`diffrax_vi.Composition`][], which takes their steps as fractions
-    of its own through `fractional_step`."""
+class AbstractComposableSolver(dfx.AbstractSolver, **_markers):
+    """Base class for solvers that [`diffrax_vi.Composition`][] can take as its
+    base: they take steps as fractions of a composition's step (`fractional_step`),
+    and say whether their step is symmetric (time-reversible: a step of `h` followed
+    by a step of `-h` returns to the start). Only a symmetric one can be raised to
+    higher order, stepped reversibly or differentiated by
+    [`diffrax_vi.ReversibleAdjoint`][].
+
+    `symmetric` comes from the method's data: a VPRK method is symmetric exactly
+    when its tableau is."""
+
+    symmetric: AbstractVar[bool]
 
     @abc.abstractmethod
     def fractional_step(
@@ -284,6 +291,12 @@ def hermite_dense_info(
     return dict(
         y0=y0, y1=y1, k0=scaled_field(step.t0, y0), k1=scaled_field(step.t1, y1)
     )
+
+
+def is_symmetric(solver) -> bool:
+    """Whether `solver` is a symmetric method of this package, whose step with $-h$
+    inverts its step with $h$."""
+    return isinstance(solver, AbstractComposableSolver) and bool(solver.symmetric)
 
 
 class AbstractVariationalSolver(dfx.AbstractSolver):

@@ -23,12 +23,12 @@ from jaxtyping import ArrayLike, Bool, PyTree
 from .._custom_types import Args, RealScalarLike
 from .._tolerance import COEFFICIENT_ATOL, PALINDROME_ATOL, PRODUCT_TOL
 from .base import (
-    AbstractSymmetricSolver,
+    AbstractComposableSolver,
     AbstractSymplecticSolver,
+    is_symmetric,
     step_control,
     Substep,
 )
-from .vprk import AbstractVPRK
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -204,7 +204,7 @@ def _as_scheme(
     return CompositionScheme(np.asarray(scheme, dtype=np.float64))
 
 
-class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
+class Composition(AbstractSymplecticSolver, AbstractComposableSolver):
     r"""Symmetric composition of a symmetric variational integrator: each step of
     size $h$ is the base method's steps of sizes $\gamma_1 h, \dots, \gamma_m h$
     (some negative).
@@ -273,20 +273,22 @@ class Composition(AbstractSymplecticSolver, AbstractSymmetricSolver):
     scheme: CompositionScheme = eqx.field(static=True)
 
     interpolation_cls: ClassVar = dfx.ThirdOrderHermitePolynomialInterpolation
+    # A symmetric composition of a symmetric base (its scheme is a palindrome).
+    symmetric: ClassVar[bool] = True
 
     def __init__(
         self,
         base: dfx.AbstractSolver,
         scheme: "str | Sequence[float] | CompositionScheme" = "yoshida4",
     ):
-        if not isinstance(base, AbstractSymmetricSolver):
+        if not isinstance(base, AbstractComposableSolver):
             raise ValueError(
                 f"Composition raises the order of a symmetric method only; "
                 f"{type(base).__name__} is not one. Use MidpointVI, TrapezoidalVI, "
                 "StormerVerlet, GaussVPRK, LobattoVPRK or a Composition as the base "
                 "(a wrapper such as diffrax.HalfSolver is not symmetric)."
             )
-        if isinstance(base, AbstractVPRK) and not base.tableau.symmetric:
+        if not is_symmetric(base):
             raise ValueError(
                 "Composition needs a symmetric base, but this VPRK tableau is not "
                 "symmetric (a_ij + a_{s+1-i, s+1-j} = b_j fails)."

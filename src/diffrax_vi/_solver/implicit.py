@@ -16,7 +16,7 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._custom_types import P, Q, V
 from .base import (
-    AbstractSymmetricSolver,
+    AbstractComposableSolver,
     AbstractSymplecticSolver,
     AbstractVariationalSolver,
     MethodStep,
@@ -34,7 +34,7 @@ from .unknowns import (
 
 
 class AbstractImplicitVI(
-    AbstractVariationalSolver, AbstractSymplecticSolver, AbstractSymmetricSolver
+    AbstractVariationalSolver, AbstractSymplecticSolver, AbstractComposableSolver
 ):
     """Base class for one-step implicit variational integrators on a
     [`diffrax_vi.LagrangianTerm`][]: symmetric and symplectic, one nonlinear solve per

@@ -12,7 +12,7 @@ from .._custom_types import Args, P, Q, RealScalarLike
 from .._misc import all_finite, split_state, sum_is_finite, tree_add
 from .._private_api import unvmap_any
 from .base import (
-    AbstractSymmetricSolver,
+    AbstractComposableSolver,
     AbstractSymplecticSolver,
     check_times,
     compensated_add,
@@ -60,7 +60,7 @@ class VerletState(eqx.Module):
     compensation: PyTree | None
 
 
-class StormerVerlet(AbstractSymplecticSolver, AbstractSymmetricSolver):
+class StormerVerlet(AbstractSymplecticSolver, AbstractComposableSolver):
     r"""Störmer–Verlet (velocity Verlet, leapfrog) method for partitioned systems.
 
     2nd order symmetric symplectic explicit method. One evaluation of each vector
@@ -104,6 +104,7 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractSymmetricSolver):
 
     term_structure: ClassVar = (dfx.AbstractTerm, dfx.AbstractTerm)
     interpolation_cls: ClassVar = dfx.ThirdOrderHermitePolynomialInterpolation
+    symmetric: ClassVar[bool] = True
 
     compensated: bool = True
 

@@ -1,3 +1,5 @@
+from typing import ClassVar
+
 import diffrax as dfx
 import equinox as eqx
 import jax
@@ -16,7 +18,7 @@ from .._lagrangian import (
 )
 from .._private_api import unvmap_any
 from .base import (
-    AbstractSymmetricSolver,
+    AbstractComposableSolver,
     AbstractSymplecticSolver,
     AbstractVariationalSolver,
     MethodStep,
@@ -75,7 +77,7 @@ def _increments(step: StepInputs, v) -> tuple[PyTree, PyTree]:
 
 
 class TrapezoidalVI(
-    AbstractVariationalSolver, AbstractSymplecticSolver, AbstractSymmetricSolver
+    AbstractVariationalSolver, AbstractSymplecticSolver, AbstractComposableSolver
 ):
     r"""Trapezoidal variational integrator.
 
@@ -114,6 +116,8 @@ class TrapezoidalVI(
     root_finder: optx.AbstractRootFinder | None = None
     root_find_max_steps: int = 16
     compensated: bool = True
+
+    symmetric: ClassVar[bool] = True
 
     def order(self, terms):
         return 2

@@ -43,7 +43,7 @@ from .._lagrangian import (
 )
 from .._space import is_euclidean
 from .._tolerance import COEFFICIENT_ATOL, ORDER_CONDITION_ATOL, PRODUCT_TOL
-from .base import AbstractSymmetricSolver, StepInputs
+from .base import StepInputs
 from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC, SYMMETRIC_POSITIVE
 from .rule import rule_increments, rule_residual, rule_work
 from .trees import satisfied_order, TREE_ORDER_MAX
@@ -250,6 +250,10 @@ class AbstractVPRK(AbstractImplicitVI):
 
     tableau: AbstractVar[VPRKTableau]
 
+    @property
+    def symmetric(self) -> bool:
+        return self.tableau.symmetric
+
     def order(self, terms):
         return self.tableau.order
 
@@ -403,16 +407,6 @@ _VPRK_REFERENCES = r"""
         }
         ```
 """
-
-
-def is_symmetric(solver) -> bool:
-    """Whether `solver` is a symmetric method of this package, whose step with $-h$
-    inverts its step with $h$: an `AbstractSymmetricSolver` and, for a VPRK (one
-    class for every tableau), one whose tableau is symmetric. (A `Composition` is
-    one: it refuses an asymmetric base.)"""
-    if isinstance(solver, AbstractVPRK):
-        return bool(solver.tableau.symmetric)
-    return isinstance(solver, AbstractSymmetricSolver)
 
 
 class VPRK(AbstractVPRK):

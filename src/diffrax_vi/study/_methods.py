@@ -4,7 +4,6 @@ import diffrax as dfx
 
 from .._adaptive import ReversibleController
 from .._solver import (
-    AbstractSymmetricSolver,
     Composition,
     GaussVPRK,
     LinearizedVI,
@@ -13,6 +12,7 @@ from .._solver import (
     StormerVerlet,
     TrapezoidalVI,
 )
+from .._solver.base import is_symmetric
 from .._term import terms_for
 from ..scenes import Scene
 from ._checks import tolerance
@@ -128,14 +128,14 @@ def as_method(spec: "str | dfx.AbstractSolver | Method", rtol: float = 1e-8) -> 
     if spec.endswith(REVERSIBLE_SUFFIX):
         base = spec.removesuffix(REVERSIBLE_SUFFIX)
         solver = make_solver(base)
-        if not isinstance(solver, AbstractSymmetricSolver):
+        if not is_symmetric(solver):
             raise ValueError(
                 f"{spec!r}: reversible adaptive steps need a symmetric one-step "
                 f"method, and {base} is not one. Symmetric names: "
                 + ", ".join(
                     n + REVERSIBLE_SUFFIX
                     for n, make in SOLVERS.items()
-                    if isinstance(make(), AbstractSymmetricSolver)
+                    if is_symmetric(make())
                 )
                 + "."
             )
@@ -155,7 +155,7 @@ def as_method(spec: "str | dfx.AbstractSolver | Method", rtol: float = 1e-8) -> 
             )
             + (
                 f"; or {base}{REVERSIBLE_SUFFIX} for reversible adaptive steps."
-                if isinstance(solver, AbstractSymmetricSolver)
+                if is_symmetric(solver)
                 else "."
             )
         )
