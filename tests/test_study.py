@@ -341,7 +341,7 @@ def test_adaptive_runs_and_failures_are_recorded():
 def test_adaptive_steps_between_saves_are_capped():
     # An adaptive run needing more than MAX_ADAPTIVE_STEPS_PER_SAVE steps in one
     # interval fails, saying so, and more intervals fix it.
-    from diffrax_vi.study._run import MAX_ADAPTIVE_STEPS_PER_SAVE
+    from diffrax_vi.study._methods import MAX_ADAPTIVE_STEPS_PER_SAVE
 
     kwargs = dict(periods=20, steps_per_period=10, rtol=1e-12)
     (few,) = drift(scenes.oscillator(), ["Tsit5+PID"], n_save=1, **kwargs).runs

@@ -7,12 +7,16 @@ from ._drift import (
     DriftStudy as DriftStudy,
 )
 from ._methods import (
+    AbstractStepping as AbstractStepping,
     as_method as as_method,
+    FixedSteps as FixedSteps,
     make_solver as make_solver,
     Method as Method,
+    PIDSteps as PIDSteps,
+    reversible_dt0 as reversible_dt0,
+    ReversibleSteps as ReversibleSteps,
     SOLVERS as SOLVERS,
 )
-from ._run import reversible_dt0 as reversible_dt0
 from ._work_precision import (
     check_work_precision as check_work_precision,
     reference_state as reference_state,

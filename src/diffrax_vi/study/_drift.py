@@ -17,7 +17,7 @@ from ._checks import (
     positive_int,
     step_count,
 )
-from ._methods import as_method, Method
+from ._methods import as_method, Method, ReversibleSteps
 from ._run import cast_scene, run, shard_ensemble
 from ._table import markdown_table, write_records
 
@@ -332,7 +332,7 @@ def drift(
                 errors=outcome.errors(),
                 symplectic=method.fixed
                 and isinstance(method.solver, AbstractSymplecticSolver),
-                reversible=method.reversible,
+                reversible=isinstance(method.stepping, ReversibleSteps),
             )
         )
     return DriftStudy(

@@ -2,6 +2,7 @@ import dataclasses
 import math
 import re
 import time
+from collections.abc import Callable
 
 import diffrax as dfx
 import equinox as eqx
@@ -12,7 +13,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, PyTree
 
 from .._misc import all_finite
-from .._scan import solve_fixed_steps
+from .._scan import FixedStepSolution, solve_fixed_steps
 from ..scenes import Scene
 from ._methods import Method
 from ._track import EnergyBalance, TrackWorstError
@@ -82,56 +83,113 @@ def columns(scene: Scene) -> list[str]:
     return names if scene.force is None else ["energy_balance", *names]
 
 
-# An adaptive method may take on average at most this many steps per save interval
-# (as diffrax's default `max_steps`), so that a step size collapsing to nothing fails
-# the run rather than spinning.
-MAX_ADAPTIVE_STEPS_PER_SAVE = 4096
+class _Solves(eqx.Module):
+    """One method's solve of one scene, set up as a plain `diffeqsolve` of it runs:
+    the tracked solve that records the errors, and the plain one that is timed."""
 
+    terms: PyTree
+    solver: dfx.AbstractSolver
+    controller: dfx.AbstractStepSizeController
+    args: PyTree
+    ts: Array
+    dt0: Array | None
+    # `(t0, t1, dt0)` as NumPy values, known when traced as `solve_fixed_steps`
+    # needs them (the solves are traced as closures over this object).
+    fixed_times: tuple | None
+    conserved: dict
+    balance_energy: Callable | None
+    max_steps: int | None = eqx.field(static=True)
+    steps_per_interval: int | None = eqx.field(static=True)
+    # Fixed steps run in `solve_fixed_steps`'s scan, unless a progress meter (which
+    # only diffeqsolve drives) is asked for.
+    scan: bool = eqx.field(static=True)
+    progress: bool = eqx.field(static=True)
 
-def reversible_dt0(
-    scene: Scene, method: Method, t1: float, n_steps: int, y0: PyTree, dtype
-) -> Array:
-    """The `dt0` at which `method`'s [`diffrax_vi.ReversibleController`][] takes
-    `n_steps` steps over `[0, t1]` on average: its steps over the first ten periods
-    (or `t1` if shorter) counted at a trial `dt0`, which is rescaled (the count is
-    inversely proportional to `dt0`) and counted again. Separate solves: the
-    measured run is a plain one at the `dt0` found."""
-    span = min(t1, 10 * scene.period)
-    wanted = n_steps * span / t1
-    terms = method.terms(scene)
-    controller = method.controller(scene)
-
-    @eqx.filter_jit
-    def count(dt0):
-        sol = dfx.diffeqsolve(
-            terms,
-            method.solver,
-            jnp.zeros((), dtype),
-            jnp.asarray(span, dtype),
-            dt0,
+    def diffeqsolve(self, solver, y0, saveat, **kwargs):
+        # The method's own steps: an adaptive controller picks its own first step,
+        # as it does alone. A bounded loop is checkpointed for reverse-mode
+        # differentiation, which copied the per-interval maxima at every step:
+        # fixed steps need no bound.
+        return dfx.diffeqsolve(
+            self.terms,
+            solver,
+            self.ts[0],
+            self.ts[-1],
+            self.dt0,
             y0,
-            args=scene.args,
-            stepsize_controller=controller,
-            saveat=dfx.SaveAt(t1=True),
-            max_steps=max(4096, 64 * math.ceil(wanted)),
+            args=self.args,
+            saveat=saveat,
+            stepsize_controller=self.controller,
+            max_steps=self.max_steps,
             throw=False,
+            **kwargs,
         )
-        ok = sol.result == dfx.RESULTS.successful
-        return jnp.where(ok, sol.stats["num_steps"], 0)
 
-    # dt0 is the step where the density is 1, at the start: the mean step is a
-    # trial that may be far too large there (at Kepler's pericentre), so shrink it
-    # until the count succeeds, then rescale it twice.
-    dt0, rescaled = t1 / n_steps, 0
-    for _ in range(12):
-        taken = int(count(jnp.asarray(dt0, dtype)))
-        if taken == 0:
-            dt0 /= 8
-        elif rescaled == 2:
-            break
+    def fixed_steps(self, solver, y0) -> FixedStepSolution:
+        # The same steps, without diffeqsolve's general loop (see
+        # `diffrax_vi.solve_fixed_steps`): states equal to a plain diffeqsolve's.
+        return solve_fixed_steps(
+            self.terms, solver, *self.fixed_times, y0, self.args, n_save=1
+        )
+
+    def plain(self, y0) -> PyTree:
+        """The final state of the method alone, as a user would run it: the
+        tracking adds work to every step and, on CPU, can push XLA's compiled loop
+        past the size where it runs as one function, so the wall time is this
+        solve's."""
+        if self.scan:
+            return jax.tree.map(lambda x: x[-1], self.fixed_steps(self.solver, y0).ys)
+        return self.diffeqsolve(self.solver, y0, dfx.SaveAt(t1=True)).ys
+
+    def tracked(self, y0):
+        """The largest error of each invariant in each interval, the final state,
+        the steps taken and how the solve ended."""
+        start = self.ts[0]
+        balance = None
+        if self.balance_energy is not None:
+            energy = self.balance_energy
+            balance = EnergyBalance(energy, self.terms, energy(start, y0, self.args))
+        solver = TrackWorstError(
+            self.solver,
+            self.conserved,
+            {k: f(start, y0, self.args) for k, f in self.conserved.items()},
+            self.ts[1:],
+            steps_per_interval=self.steps_per_interval,
+            balance=balance,
+        )
+        if self.scan:
+            sol = self.fixed_steps(solver, y0)
+            t_reached = sol.t_reached
+            # The steps up to and including a failed one, where diffeqsolve stops
+            # (the scan goes on, and the tracker counts every step it is given).
+            failed = sol.result != dfx.RESULTS.successful
+            worst = sol.solver_state.worst
+            taken = sol.num_steps + failed.astype(jnp.int32)
         else:
-            dt0, rescaled = dt0 * taken / wanted, rescaled + 1
-    return jnp.asarray(dt0, dtype)
+            meter = dfx.TqdmProgressMeter() if self.progress else dfx.NoProgressMeter()
+            saveat = dfx.SaveAt(t1=True, solver_state=True)
+            sol = self.diffeqsolve(solver, y0, saveat, progress_meter=meter)
+            t_reached = sol.ts[-1]
+            worst = sol.solver_state.worst
+            # Steps counted by the wrapper plus the rejected ones: returning
+            # diffrax's own step counters made XLA copy the per-interval maxima at
+            # every step.
+            taken = worst.steps + sol.stats["num_rejected_steps"]
+        final = jax.tree.map(lambda x: x[-1], sol.ys)
+        # diffrax's Runge-Kutta solvers do not check fixed steps for NaN: a blow-up
+        # would otherwise be tabled as a success.
+        result = dfx.RESULTS.where(
+            (sol.result == dfx.RESULTS.successful) & ~all_finite((worst.errors, final)),
+            dfx.RESULTS.nonfinite,
+            sol.result,
+        )
+        # Intervals the solve did not reach, after a failure, have no errors.
+        reached = self.ts[1:] <= t_reached
+        ok = result == dfx.RESULTS.successful
+        kept = jnp.where((ok | reached)[:, None], worst.errors, jnp.nan)
+        kept = jnp.concatenate([jnp.zeros_like(kept[:1]), kept])
+        errors = {k: kept[:, i] for i, k in enumerate(solver.names)}
+        return errors, final, taken, result
 
 
 def run(
@@ -156,135 +214,47 @@ def run(
     over it (and runs on every device `y0` is sharded over).
 
     The run is one `diffeqsolve`, as a user would write it: splitting it into one
-    solve per interval made an adaptive controller end every interval on its boundary
-    and pick its first step afresh (Dopri8 at rtol 1e-6 on Kepler over 100 periods
-    took 3900 steps in 1000 intervals against 1535 alone, and showed a 4x smaller
-    energy error). The errors are taken at every step, not sampled (a sample every
-    k-th step aliases with the motion), by wrapping the solver in `TrackWorstError`,
+    solve per interval makes an adaptive controller end every interval on its
+    boundary and pick its first step afresh, which changes its steps and its
+    errors. The errors are taken at every step, not sampled (a sample every k-th
+    step aliases with the motion), by wrapping the solver in `TrackWorstError`,
     which keeps each interval's maximum in its solver state: memory is O(`n_save`),
     not O(steps).
 
     Fixed steps run in `diffrax_vi.solve_fixed_steps`, which calls the solver's own
     `init` and `step` at the times `diffeqsolve` would, in an unrolled scan: a plain
-    `diffeqsolve`'s states to round-off, without the overhead of its general loop
-    (through it a CPU ensemble of Stormer-Verlet steps reached 0.3-0.5x a bare scan
-    of the update; through the scan, 1.6x), unless `progress` asks for diffrax's
-    progress meter. The wall time is of a separate plain solve of the same method,
-    the same way, saving only `t1`: what the method costs a user rather than the
-    study: the best of up to three compiled calls, as many as start within a
-    second."""
-    conserved = scene.conserved()
-    terms = method.terms(scene)
-    controller = method.controller(scene)
-    args = scene.args
+    `diffeqsolve`'s states to round-off, without the overhead of its general loop,
+    unless `progress` asks for diffrax's progress meter. The wall time is of a
+    separate plain solve of the same method, the same way, saving only `t1`: what
+    the method costs a user rather than the study: the best of up to three compiled
+    calls, as many as start within a second."""
+    first = jax.tree.map(lambda x: x[0], y0) if ensemble else y0
     fixed = method.fixed
     ts = jnp.linspace(0, t1, n_save + 1, dtype=dtype)
-    h = jnp.asarray(t1 / n_steps, dtype)
-    dt0 = h if fixed else None
-    max_steps = None if fixed else MAX_ADAPTIVE_STEPS_PER_SAVE * n_save
-    if method.reversible:
-        first = jax.tree.map(lambda x: x[0], y0) if ensemble else y0
-        dt0 = reversible_dt0(scene, method, t1, n_steps, first, dtype)
-        # Room for the steps asked for, four times over (the calibration counts a
-        # different trajectory where the motion is chaotic), as diffeqsolve needs a
-        # bound.
-        max_steps = max(max_steps, 4 * n_steps)
-    # Known when traced, as `solve_fixed_steps` needs them.
-    times = tuple(np.asarray(x) for x in (ts[0], ts[-1], h))
-    meter = dfx.TqdmProgressMeter() if progress else dfx.NoProgressMeter()
-    # Fixed steps run in `solve_fixed_steps`'s scan, unless a progress meter (which
-    # only diffeqsolve drives) is asked for.
-    scan = fixed and not progress
-
-    def diffeqsolve(solver, y0, saveat, **kwargs):
-        # The method's own steps: an adaptive controller picks its own first step,
-        # as it does alone. A bounded loop is checkpointed for reverse-mode
-        # differentiation, which copied the per-interval maxima at every step:
-        # fixed steps need no bound.
-        return dfx.diffeqsolve(
-            terms,
-            solver,
-            ts[0],
-            ts[-1],
-            dt0,
-            y0,
-            args=args,
-            saveat=saveat,
-            stepsize_controller=controller,
-            max_steps=max_steps,
-            throw=False,
-            **kwargs,
-        )
-
-    def fixed_steps(solver, y0):
-        # The same steps, without diffeqsolve's general loop (see
-        # `diffrax_vi.solve_fixed_steps`): states equal to a plain diffeqsolve's.
-        sol = solve_fixed_steps(terms, solver, *times, y0, args, n_save=1)
-        return jax.tree.map(lambda x: x[-1], sol.ys), sol
-
-    def solve(y0):
-        balance = None
-        if scene.force is not None:
-            energy = scene.energy
-            balance = EnergyBalance(energy, scene.term(), energy(ts[0], y0, args))
-        solver = TrackWorstError(
-            method.solver,
-            conserved,
-            {k: f(ts[0], y0, args) for k, f in conserved.items()},
-            ts[1:],
-            steps_per_interval=n_steps // n_save if fixed else None,
-            balance=balance,
-        )
-        if scan:
-            final, sol = fixed_steps(solver, y0)
-            t_reached = sol.t_reached
-            # The steps up to and including a failed one, where diffeqsolve stops
-            # (the scan goes on, and the tracker counts every step it is given).
-            failed = sol.result != dfx.RESULTS.successful
-            taken = sol.num_steps + failed.astype(jnp.int32)
-        else:
-            sol = diffeqsolve(
-                solver,
-                y0,
-                dfx.SaveAt(t1=True, solver_state=True),
-                progress_meter=meter,
-            )
-            final = jax.tree.map(lambda x: x[-1], sol.ys)
-            t_reached = sol.ts[-1]
-            # Steps counted by the wrapper plus the rejected ones: returning
-            # diffrax's own step counters made XLA copy the per-interval maxima at
-            # every step (1 us per step with 1000 intervals).
-            taken = sol.solver_state[1].steps + sol.stats["num_rejected_steps"]
-        _, worst = sol.solver_state
-        # diffrax's Runge-Kutta solvers do not check fixed steps for NaN: a blow-up
-        # would otherwise be tabled as a success.
-        result = dfx.RESULTS.where(
-            (sol.result == dfx.RESULTS.successful) & ~all_finite((worst.errors, final)),
-            dfx.RESULTS.nonfinite,
-            sol.result,
-        )
-        # Intervals the solve did not reach, after a failure, have no errors.
-        reached = ts[1:] <= t_reached
-        ok = result == dfx.RESULTS.successful
-        kept = jnp.where((ok | reached)[:, None], worst.errors, jnp.nan)
-        kept = jnp.concatenate([jnp.zeros_like(kept[:1]), kept])
-        errors = {k: kept[:, i] for i, k in enumerate(solver.names)}
-        return errors, final, taken, result
-
-    def plain(y0):
-        # The method alone, as a user would run it: the tracking above adds work
-        # to every step and, on CPU, can push XLA's compiled loop past the size
-        # where it runs as one function (Stormer-Verlet on Kepler: 0.05 us per step
-        # alone, 1.3 us tracked), so the wall time is this solve's.
-        if scan:
-            return fixed_steps(method.solver, y0)[0]
-        return diffeqsolve(method.solver, y0, dfx.SaveAt(t1=True)).ys
-
+    dt0 = method.stepping.dt0(scene, method, t1, n_steps, first, dtype)
+    solves = _Solves(
+        terms=method.terms(scene),
+        solver=method.solver,
+        controller=method.controller(scene),
+        args=scene.args,
+        ts=ts,
+        dt0=dt0,
+        fixed_times=tuple(np.asarray(x) for x in (ts[0], ts[-1], dt0))
+        if fixed
+        else None,
+        conserved=scene.conserved(),
+        balance_energy=None if scene.force is None else scene.energy,
+        max_steps=method.stepping.max_steps(n_steps, n_save),
+        steps_per_interval=n_steps // n_save if fixed else None,
+        scan=fixed and not progress,
+        progress=progress,
+    )
     vmapped = jax.vmap if ensemble else lambda f: f
-    solve = eqx.filter_jit(vmapped(solve))
-    plain = eqx.filter_jit(vmapped(plain))
+    # Closures over `solves`: its arrays are constants of the compiled solves.
+    tracked = eqx.filter_jit(vmapped(lambda y0: solves.tracked(y0)))
+    plain = eqx.filter_jit(vmapped(lambda y0: solves.plain(y0)))
     try:
-        errors, final, steps, result = jax.block_until_ready(solve(y0))
+        errors, final, steps, result = jax.block_until_ready(tracked(y0))
     except eqx.EquinoxRuntimeError as error:
         # A vector field that cannot return a RESULTS raised (a Runge-Kutta solve of
         # a LagrangianTerm that left where the Legendre map or the constraint

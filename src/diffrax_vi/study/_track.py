@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Float, Int, PyTree
 
 from .._force import applied_force, power
 from .._lagrangian import velocity
@@ -58,6 +58,14 @@ class EnergyBalance(eqx.Module):
         return (t1 - t0) * jnp.sum(
             jnp.asarray(_WEIGHTS, nodes.dtype) * jax.vmap(power_at)(nodes)
         )
+
+
+class Tracked(eqx.Module):
+    """The solver state of [`TrackWorstError`][]: the wrapped solver's, and the
+    worst errors so far."""
+
+    inner: PyTree
+    worst: Worst
 
 
 def discrete_work(solver_state) -> Array | None:
@@ -131,10 +139,10 @@ class TrackWorstError(dfx.AbstractWrappedSolver):
         errors = jnp.zeros((self.boundaries.shape[0], len(self.names)), dtype)
         work = None if self.balance is None else jnp.zeros((), dtype)
         worst = Worst(errors, jnp.zeros((), jnp.int32), work)
-        return self.solver.init(terms, t0, t1, y0, args), worst
+        return Tracked(self.solver.init(terms, t0, t1, y0, args), worst)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        inner, worst = solver_state
+        inner, worst = solver_state.inner, solver_state.worst
         y1, y_error, dense_info, inner, result = self.solver.step(
             terms, t0, t1, y0, args, inner, made_jump
         )
@@ -166,7 +174,7 @@ class TrackWorstError(dfx.AbstractWrappedSolver):
             worst.errors, jnp.maximum(row, errors[None]), index, 0
         )
         worst = Worst(errors, worst.steps + 1, work)
-        return y1, y_error, dense_info, (inner, worst), result
+        return y1, y_error, dense_info, Tracked(inner, worst), result
 
     def func(self, terms, t0, y0, args):
         return self.solver.func(terms, t0, y0, args)

@@ -12,7 +12,7 @@ from jaxtyping import Array, PyTree
 from .._term import LagrangianTerm
 from ..scenes import Scene
 from ._checks import non_empty, step_count, tolerance
-from ._methods import as_method, Method
+from ._methods import as_method, Method, PIDSteps
 from ._run import cast_scene, run
 from ._table import markdown_table, write_records
 
@@ -110,7 +110,7 @@ def work_precision(
     solvers = non_empty("solvers", solvers)
     methods = [as_method(spec) for spec in solvers]
     grid = check_work_precision(periods, steps_per_period)
-    if any(m.rtol is not None for m in methods):
+    if any(isinstance(m.stepping, PIDSteps) for m in methods):
         rtols = [tolerance(r) for r in non_empty("rtols", rtols)]
     t1 = scene.period * periods
     if reference is None:
@@ -119,9 +119,13 @@ def work_precision(
     scene = cast_scene(scene, dtype)
     records = []
     for base in methods:
-        adaptive = base.rtol is not None
+        adaptive = isinstance(base.stepping, PIDSteps)
         for setting in rtols if adaptive else steps_per_period:
-            method = dataclasses.replace(base, rtol=setting) if adaptive else base
+            method = (
+                dataclasses.replace(base, stepping=PIDSteps(setting))
+                if adaptive
+                else base
+            )
             spp = steps_per_period[0] if adaptive else setting
             n_steps = grid[spp]
             outcome = run(
