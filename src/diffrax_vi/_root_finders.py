@@ -22,7 +22,7 @@ them, reports how they ended, and differentiates through the root implicitly:
 
 import abc
 from collections.abc import Callable
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 import diffrax as dfx
 import equinox as eqx
@@ -48,6 +48,9 @@ from ._tolerance import (
     ROUNDOFF_RESIDUAL,
     scaled_norm,
 )
+
+
+LinearSolverName = Literal["auto", "dense", "krylov"]
 
 
 class AbstractVIRootFinder(optx.AbstractRootFinder):
@@ -160,7 +163,7 @@ class Newton(AbstractVIRootFinder):
 
     certifies_continuation: ClassVar[bool] = False
     rtol: float | None = None
-    linear_solver: str | lx.AbstractLinearSolver = eqx.field(
+    linear_solver: LinearSolverName | lx.AbstractLinearSolver = eqx.field(
         static=True, default="auto"
     )
     damped: bool = eqx.field(static=True, default=False)

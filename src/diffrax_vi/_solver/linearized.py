@@ -1,3 +1,5 @@
+from typing import Literal
+
 import diffrax as dfx
 import equinox as eqx
 import jax
@@ -112,7 +114,7 @@ class LinearizedVI(AbstractVariationalSolver):
         ```
     """
 
-    velocity: str = eqx.field(static=True, default="forward")
+    velocity: Literal["forward", "centered"] = eqx.field(static=True, default="forward")
     discrete_lagrangian: AbstractDiscreteLagrangian = MidpointRule()
     linear_solver: lx.AbstractLinearSolver | None = None
     root_finder: optx.AbstractRootFinder | None = None
