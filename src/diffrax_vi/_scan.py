@@ -4,10 +4,10 @@ r"""Fixed steps without `diffeqsolve`'s loop: the solver's own `step` in an unro
 `diffrax.diffeqsolve` runs every solve, fixed-step or adaptive, in one general
 `while` loop that carries a step-size controller, event handling, save buffers and
 the bookkeeping of rejected steps. For a fixed step on a small system that loop costs
-more than the step: on a vmapped ensemble of 1024 Kepler problems on CPU, Störmer–
-Verlet reached 0.3x the throughput of a bare `jax.vmap` of a `lax.scan` of the same
-update (`benchmarks/ensemble_throughput.py`). A fixed number of steps needs none of
-it: [`diffrax_vi.solve_fixed_steps`][] calls the same `solver.init` and
+more than the step: a vmapped ensemble runs well below the throughput of a bare
+`jax.vmap` of a `lax.scan` of the same update (`benchmarks/ensemble_throughput.py`).
+A fixed number of steps needs none of it: [`diffrax_vi.solve_fixed_steps`][] calls
+the same `solver.init` and
 `solver.step`, at the same times, as `diffeqsolve` with `diffrax.ConstantStepSize`
 does, in a scan whose trip count is known and whose body XLA can unroll.
 """

@@ -149,8 +149,7 @@ def tangent_line(space, q, eta):
     r"""$q + \dot q(\eta)$, the velocity $\eta$ added to $q$ in the space's
     embedding: equal to $q \oplus \eta$ to first order at $\eta = 0$, so a first
     derivative at $\eta = 0$ may differentiate along it, which costs less than
-    differentiating the exponential (the heavy top's trapezoidal step: 29 against
-    21 us, `benchmarks/lie_groups.py`)."""
+    differentiating the exponential (`benchmarks/lie_groups.py`)."""
     return jtu.tree_map(lambda a, b: a + b, q, velocity(space, q, eta))
 
 

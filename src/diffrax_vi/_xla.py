@@ -7,11 +7,9 @@ the first only for a loop whose body accesses fewer than
 `xla_cpu_small_while_loop_byte_threshold` bytes, 1 kB by default. The loop of a
 `diffeqsolve` on a few degrees of freedom is usually just above that: its solver
 state, a save buffer, compensated summation or a Newton fallback take it over, and
-each step then pays some 20 ns for each of tens of kernels. Measured on Kepler
-(2 degrees of freedom, one core): `Composition(StormerVerlet(), "yoshida4")` 0.36 us
-per step against 0.11 us with the threshold raised, `MidpointVI` 1.12 against 0.21,
-the drift study's tracked Störmer–Verlet 1.16 against 0.045
-(`benchmarks/step_cost.py`, `benchmarks/study_cost.py`).
+each step then pays a dispatch for each of tens of kernels, which on a small system
+costs several times the step's arithmetic (`benchmarks/step_cost.py` and
+`benchmarks/study_cost.py` measure both settings).
 
 The threshold is read once, when JAX starts its CPU backend, from the environment
 variable `XLA_FLAGS`; it cannot be set per compilation.
@@ -25,11 +23,9 @@ from ._private_api import backends_are_initialized
 
 # Bytes a loop body may access and still be compiled as one function. 4 MiB covers
 # the Newton and Krylov loops of the implicit solvers up to about a thousand degrees
-# of freedom, where 64 KiB stopped at about 60 (MidpointVI on the generic 64-mass
-# chain 18.6 -> 6.5 us per step, LinearizedVI 14.0 -> 9.0; 1.3-1.4x faster at
-# 1024; `benchmarks/scaling.py`), and leaves the loops of 4096-mass chains, whose
-# kernels are large enough to pay for their dispatch, as they were (a threshold of
-# 1 GB made Tsit5 on the 4096-mass chain 1.3x slower).
+# of freedom (64 KiB stopped at about 60), and leaves the loops of 4096-mass chains,
+# whose kernels are large enough to pay for their dispatch, as they were (a far
+# larger threshold made them slower); `benchmarks/scaling.py` measures both.
 SMALL_LOOP_BYTES = 1 << 22
 
 _OPTION = "xla_cpu_small_while_loop_byte_threshold"
@@ -42,11 +38,10 @@ def small_loop_flag(threshold_bytes: int) -> str:
 
 def compile_small_loops_whole(threshold_bytes: int = SMALL_LOOP_BYTES) -> bool:
     """Let XLA compile every CPU loop whose body accesses fewer than
-    `threshold_bytes` bytes as one function: on systems of a few degrees of freedom,
-    2 to 25 times faster steps (Kepler, per step: a fourth-order composition of
-    Störmer–Verlet 0.36 -> 0.11 us, `MidpointVI` 1.12 -> 0.21 us), and 1.3 to 3.3 times
-    faster implicit steps on 64 to 1024 degrees of freedom, whose Newton and Krylov
-    loops cross XLA's threshold. No effect on GPUs.
+    `threshold_bytes` bytes as one function: faster steps on systems of a few
+    degrees of freedom, and faster implicit steps on 64 to 1024 degrees of freedom,
+    whose Newton and Krylov loops cross XLA's threshold (the ratios are on the
+    [Benchmarks](../benchmarks.md) page). No effect on GPUs.
 
     Call it before JAX runs anything (the first array created or computation run
     starts the backend, which reads the setting once); `import jax` and

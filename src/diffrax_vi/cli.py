@@ -399,7 +399,7 @@ def main(argv: list[str] | None = None) -> int:
 
     In a fresh process it first lets XLA compile small loops whole
     ([`diffrax_vi.compile_small_loops_whole`][]): the studies of few-degree-of-freedom
-    scenes run 2 to 25 times faster on CPU, and every method gets the same setting."""
+    scenes run several times faster on CPU, and every method gets the same setting."""
     if not backends_are_initialized():
         compile_small_loops_whole()
     parser = _parser()

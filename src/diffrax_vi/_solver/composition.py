@@ -348,8 +348,8 @@ class Composition(AbstractSymplecticSolver, AbstractComposableSolver):
     ):
         # The substeps run as an inner scan over the scheme's fractions, not
         # unrolled: XLA on CPU compiles a loop whose body is small into one function,
-        # and 17 unrolled Stormer-Verlet substeps on Kepler cost 2.1x their separate
-        # steps (1.39 against 17 x 0.039 us) where a scan costs 1.0x.
+        # and 17 unrolled Stormer-Verlet substeps cost about twice their separate
+        # steps where a scan costs no more than them (`benchmarks/step_cost.py`).
         gammas = self.scheme.coefficients
         ends = np.cumsum(gammas)
         starts = np.concatenate([[0.0], ends[:-1]])

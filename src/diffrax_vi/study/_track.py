@@ -20,8 +20,8 @@ class Worst(eqx.Module):
     steps taken.
 
     One array, not one per quantity: with two buffers in the loop state XLA stopped
-    updating them in place, and a Kepler study's Störmer–Verlet step went from 0.04
-    to 1.1 us."""
+    updating them in place, which cost a Störmer–Verlet step many times its own
+    work."""
 
     errors: Float[Array, "n_save n_conserved"]
     steps: Int[Array, ""]
@@ -88,8 +88,8 @@ class TrackWorstError(dfx.AbstractWrappedSolver):
     ends of the intervals. diffrax keeps a solver state only from accepted steps, so
     rejected steps do not count. This costs one evaluation of the invariants and one
     indexed update per step; streaming every step's errors out through
-    `SaveAt(steps=True, fn=...)` instead cost a buffer write per step, which on CPU
-    made a Kepler study 1.4x (MidpointVI) to 18x (StormerVerlet) slower."""
+    `SaveAt(steps=True, fn=...)` instead costs a buffer write per step, which on CPU
+    is dearer than an explicit step."""
 
     solver: dfx.AbstractSolver
     # It takes the wrapped solver's steps unchanged, so a check of the solver's
