@@ -23,10 +23,23 @@ import lineax as lx
 from jaxtyping import Array, Float, PyTree
 
 from ._custom_types import Args, P, Q, RealScalarLike
-from ._lagrangian import legendre_residual, momentum, velocity, velocity_is_explicit
+from ._lagrangian import (
+    AbstractSeparableLagrangian,
+    broadcast_mass,
+    legendre_residual,
+    momentum,
+    velocity,
+    velocity_is_explicit,
+)
+from ._linear import unrolled_lu_solve
 from ._misc import all_finite, split_state, state_dtype
 from ._root_finders import Newton, solve
-from ._tolerance import newton_tolerance, scaled_norm, singular_threshold
+from ._tolerance import (
+    newton_is_dense,
+    newton_tolerance,
+    scaled_norm,
+    singular_threshold,
+)
 
 
 def constraint_values(
@@ -136,9 +149,11 @@ def project_momentum(
 ) -> Projected:
     r"""$p - G(q)^\top\mu$ with $\mu$ such that $G(q)\,v(q, p - G^\top\mu)
     + \partial g/\partial t = 0$: the momentum on the hidden constraint (RATTLE's
-    projection, Hairer, Lubich & Wanner (2006), VII.1.4). Newton's method on $\mu$;
-    for a Lagrangian quadratic in the velocity the equation is linear, and one
-    iteration solves it.
+    projection, Hairer, Lubich & Wanner (2006), VII.1.4). For a separable Lagrangian
+    ($v = M^{-1}p$) the equation is linear, $(G M^{-1} G^\top)\mu = G M^{-1} p +
+    \partial g/\partial t$: one $m \times m$ solve (`RESULTS.singular` where
+    $G M^{-1} G^\top$ is singular to working precision). Otherwise Newton's method on
+    $\mu$; for a Lagrangian quadratic in the velocity one iteration solves it.
 
     Where the velocity is itself a root (a Lagrangian not known to be quadratic in
     $v$, or one of more than 16 degrees of freedom), Newton's method solves for
@@ -159,6 +174,8 @@ def project_momentum(
     def moved(mu):
         return jtu.tree_map(lambda a, b: a + b, p, impulse(mu))
 
+    if isinstance(term.lagrangian, AbstractSeparableLagrangian) and newton_is_dense(m):
+        return project_separable(term.lagrangian, jacobian, rate, p)
     if velocity_is_explicit(term.lagrangian, p):
 
         def residual(mu):
@@ -179,6 +196,24 @@ def project_momentum(
         mu = solved.value[1]
     kick = impulse(mu)
     return Projected(jtu.tree_map(lambda a, b: a + b, p, kick), kick, solved.result)
+
+
+def project_separable(lagrangian, jacobian: Array, rate: Array, p: P) -> Projected:
+    r"""`project_momentum` for a separable Lagrangian, $v = M^{-1}p$, given the
+    constraint Jacobian $G$ and rate $\partial g/\partial t$ at the point: one
+    $m \times m$ solve of $(G M^{-1} G^\top)\mu = G M^{-1} p + \partial g/\partial t$
+    by unrolled elimination (no LAPACK call in the step)."""
+    flat_p, unravel = jax.flatten_util.ravel_pytree(p)
+    mass = broadcast_mass(lagrangian.mass, p)
+    inverse_mass = _flat(jtu.tree_map(lambda x, m: jnp.ones_like(x) / m, p, mass))
+    weighted = jacobian * inverse_mass[None, :]
+    mu, ratio = unrolled_lu_solve(weighted @ jacobian.T, weighted @ flat_p + rate)
+    # NaN pivots (a NaN state) are not a singular matrix: the step's check of the
+    # new state reports them.
+    regular = ~(ratio <= singular_threshold(jacobian.shape[0], jacobian.dtype))
+    result = dfx.RESULTS.where(regular, dfx.RESULTS.successful, dfx.RESULTS.singular)
+    impulse = -jacobian.T @ mu
+    return Projected(unravel(flat_p + impulse), unravel(impulse), result)
 
 
 def project_onto_constraints(

@@ -11,7 +11,9 @@ $$p_1 = D_2 L_d(q_0, q_1) + f^+_0 - G(q_1)^\top\mu,\qquad G(q_1)\,v(q_1, p_1) = 
 The first line is the unconstrained step's equation with $p_0$ shifted by the impulse
 $G(q_0)^\top\lambda$: the step's unknowns and $\lambda$ are solved together, one
 Newton system. The second projects the momentum onto the hidden constraint. For the
-trapezoidal $L_d$ of a separable Lagrangian this is RATTLE. The step is symmetric
+trapezoidal $L_d$ of a separable Lagrangian this is RATTLE, whose positions are
+explicit in $\lambda$: `rattle.py` solves it for the multipliers alone. The step is
+symmetric
 when the unconstrained one is (so compositions raise its order) and symplectic on the
 constrained phase space $\{g(q) = 0,\ G(q)\,v(q, p) = 0\}$.
 """

@@ -17,6 +17,7 @@ from .._lagrangian import (
     mass_regular,
 )
 from .._private_api import unvmap_any
+from .._root_finders import Newton
 from .base import (
     AbstractComposableSolver,
     AbstractSymplecticSolver,
@@ -27,6 +28,7 @@ from .base import (
 )
 from .constrained import constrained_step, init_constrained
 from .implicit import IMPLICIT_ARGS_DOC
+from .rattle import rattle_init, rattle_step
 from .rule import rule_increments, rule_residual, rule_work
 from .stormer_verlet import kick_drift_kick, poisoned_force
 from .unknowns import (
@@ -55,17 +57,26 @@ def _work(step: StepInputs, v) -> PyTree:
     return rule_work(_RULE, step, v)
 
 
-def _explicit(step: StepInputs) -> bool:
-    """Whether the step is Störmer–Verlet: a separable Lagrangian, no constraint,
-    and no force or one of the positions and time alone."""
+def _positional(step: StepInputs) -> bool:
+    """Whether the step's momenta are explicit: a separable Lagrangian and no force
+    or one of the positions and time alone."""
     term = step.term
-    if term.constraint is not None:
-        return False
     if not isinstance(term.lagrangian, AbstractSeparableLagrangian):
         return False
     return term.force is None or not depends_on_velocity(
         term.force, step.t0, step.q0, step.p0, step.args
     )
+
+
+def _explicit(step: StepInputs) -> bool:
+    """Whether the step is Störmer–Verlet: explicit momenta and no constraint."""
+    return step.term.constraint is None and _positional(step)
+
+
+def _rattle(step: StepInputs) -> bool:
+    """Whether the step is RATTLE on the multipliers alone: explicit momenta and a
+    constraint."""
+    return step.term.constraint is not None and _positional(step)
 
 
 def _residual(step: StepInputs, v) -> tuple[PyTree, PyTree]:
@@ -84,9 +95,10 @@ class TrapezoidalVI(
     2nd order symmetric symplectic variational integrator. Explicit (Störmer–Verlet,
     one force evaluation per step) for an
     [`diffrax_vi.AbstractSeparableLagrangian`][] with no applied force or one of the
-    positions and time alone; RATTLE with holonomic constraints; one nonlinear solve
-    per step otherwise. Fixed step sizes only. Cubic Hermite interpolation for dense
-    output.
+    positions and time alone, and with holonomic constraints RATTLE, solved for the
+    multipliers alone (one force evaluation, Newton's method on the $m$ position
+    multipliers and one $m \times m$ solve per step); one nonlinear solve per step
+    otherwise. Fixed step sizes only. Cubic Hermite interpolation for dense output.
 
     Discrete Lagrangian, with $v = (q_1 - q_0)/h$:
 
@@ -129,6 +141,8 @@ class TrapezoidalVI(
             force = poisoned_force(_force(step, step.t0, step.q0), y0)
             mass = broadcast_mass(lagrangian.mass, step.p0)
             return ExplicitState(force, mass_regular(mass, step.p0))
+        if _rattle(step):
+            return rattle_init(step, lambda t, q: _force(step, t, q))
         if step.term.constraint is not None:
             return init_constrained(step, lambda v: v, root_finding(self.root_finder))
         return init_unknowns(step, lambda v: v, root_finding(self.root_finder))
@@ -138,9 +152,19 @@ class TrapezoidalVI(
     ) -> MethodStep:
         if _explicit(step):
             return self._explicit_step(step, state, made_jump)
+        if _rattle(step):
+            return rattle_step(
+                step,
+                state,
+                made_jump,
+                lambda t, q: _force(step, t, q),
+                None if step.term.force is None else (lambda v: _work(step, v)),
+                Newton() if self.root_finder is None else self.root_finder,
+                self.root_find_max_steps,
+            )
         assert isinstance(state, Unknowns)
         if step.term.constraint is not None:
-            # RATTLE, for a separable Lagrangian.
+            # The constrained trapezoidal step of a general Lagrangian.
             return constrained_step(
                 step,
                 state,

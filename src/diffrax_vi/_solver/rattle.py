@@ -1,0 +1,151 @@
+r"""RATTLE: the constrained trapezoidal step of a separable Lagrangian, solved for the
+multipliers alone.
+
+For $L = \tfrac12 v^\top M v - V(t, q)$ (plus an applied force of the positions and
+time alone, $F$ the sum of both) and holonomic constraints $g(t, q) = 0$ with
+Jacobian $G$, the discrete Lagrange–d'Alembert equations of the trapezoidal rule with
+the constraint forces are RATTLE (Hairer, Lubich & Wanner (2006), VII.1.4; Marsden &
+West (2001), §3.5):
+
+$$p_{1/2} = p_0 + \tfrac h2 F(t_0, q_0) + G(q_0)^\top\lambda,\qquad
+q_1 = q_0 + h M^{-1} p_{1/2},\qquad g(t_1, q_1) = 0,$$
+
+$$p_1 = p_{1/2} + \tfrac h2 F(t_1, q_1) - G(q_1)^\top\mu,\qquad
+G(q_1) M^{-1} p_1 + \partial_t g(t_1, q_1) = 0.$$
+
+The positions are explicit in the $m$ multipliers $\lambda$, so Newton's method runs
+on the $m$ equations $g(t_1, q_1(\lambda)) = 0$ rather than on the $n + m$ unknowns
+of the general constrained step, and $\mu$ solves one linear $m \times m$ system
+(`project_separable`). The force and the constraint Jacobian at $q_1$ start the next
+step: one evaluation of each per step. These are the equations the general path
+solves, so the states agree to the root finder's tolerance.
+"""
+
+from collections.abc import Callable
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.flatten_util
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import optimistix as optx
+from jaxtyping import Array, Bool, PyTree
+
+from .._constraint import (
+    check_start as check_constraint_start,
+    constraint_jacobian,
+    constraint_rate,
+    constraint_scale,
+    constraint_values,
+    project_separable,
+)
+from .._lagrangian import broadcast_mass, mass_regular
+from .._private_api import unvmap_any
+from .._root_finders import solve
+from .base import MethodStep, StepInputs
+from .stormer_verlet import poisoned_force
+
+
+class RattleState(eqx.Module):
+    """What a step hands to the next: the force and the constraint Jacobian at the
+    end of the last step (the next one starts there), whether the mass is invertible
+    (checked once, at the start), and the last step's position multipliers (the next
+    step's guess)."""
+
+    force: PyTree
+    jacobian: Array
+    regular: Bool[Array, ""]
+    multipliers: Array
+
+
+def rattle_init(step: StepInputs, force) -> RattleState:
+    """The state before the first step, after checking that the start lies on the
+    constraint manifold. `force(t, q)` is $F$."""
+    term = step.term
+    y0 = (step.q0, step.p0)
+    mass = broadcast_mass(term.lagrangian.mass, step.p0)
+    v0 = jtu.tree_map(lambda p, m: p / m, step.p0, mass)
+    jacobian = constraint_jacobian(term.constraint, step.t0, step.q0, step.args)
+    multipliers = check_constraint_start(
+        term,
+        step.t0,
+        step.q0,
+        step.p0,
+        v0,
+        step.args,
+        jnp.zeros(jacobian.shape[:1], step.dtype),
+    )
+    return RattleState(
+        poisoned_force(force(step.t0, step.q0), y0),
+        jacobian,
+        mass_regular(mass, step.p0),
+        multipliers,
+    )
+
+
+def rattle_step(
+    step: StepInputs,
+    state: RattleState,
+    made_jump,
+    force: Callable[[Array, PyTree], PyTree],
+    work: Callable[[PyTree], Array] | None,
+    root_finder: optx.AbstractRootFinder,
+    max_steps: int,
+) -> MethodStep:
+    """One RATTLE step; `force(t, q)` is $F$, `work(v)` the work of the applied
+    force's discrete forces at the step's velocity (`None` without one: the
+    constraint forces do no work on the constrained motion)."""
+    term, t0, t1, h, q0, p0, args = (
+        step.term,
+        step.t0,
+        step.t1,
+        step.h,
+        step.q0,
+        step.p0,
+        step.args,
+    )
+    g = term.constraint
+    # After a jump the cached force and Jacobian belong to the state before it.
+    force0, jacobian0 = jax.lax.cond(
+        unvmap_any(made_jump),
+        lambda: (
+            poisoned_force(force(t0, q0), (q0, p0)),
+            constraint_jacobian(g, t0, q0, args),
+        ),
+        lambda: (state.force, state.jacobian),
+    )
+    mass = broadcast_mass(term.lagrangian.mass, p0)
+    flat_p0, unravel = jax.flatten_util.ravel_pytree(p0)
+    kicked = flat_p0 + 0.5 * h * jax.flatten_util.ravel_pytree(force0)[0]
+    flat_mass = jax.flatten_util.ravel_pytree(
+        jtu.tree_map(lambda p, m: jnp.broadcast_to(m, jnp.shape(p)), p0, mass)
+    )[0]
+
+    def increment(lam):
+        return unravel(h * (kicked + jacobian0.T @ lam) / flat_mass)
+
+    def residual(lam):
+        q1 = step.end_position(increment(lam))
+        return constraint_values(g, t1, q1, args), constraint_scale(jacobian0, q1)
+
+    solved = solve(residual, state.multipliers, root_finder, max_steps)
+    lam = solved.value
+    dq = increment(lam)
+    q1 = step.end_position(dq)
+    force1 = force(t1, q1)
+    jacobian1 = constraint_jacobian(g, t1, q1, args)
+    end = unravel(
+        kicked + jacobian0.T @ lam + 0.5 * h * jax.flatten_util.ravel_pytree(force1)[0]
+    )
+    projected = project_separable(
+        term.lagrangian, jacobian1, constraint_rate(g, t1, q1, args), end
+    )
+    dp = jtu.tree_map(lambda a, b: a - b, projected.p, p0)
+    result = dfx.RESULTS.where(
+        solved.result == dfx.RESULTS.successful, projected.result, solved.result
+    )
+    result = dfx.RESULTS.where(state.regular, result, dfx.RESULTS.singular)
+    v = jtu.tree_map(lambda x: x / h, dq)
+    new = RattleState(force1, jacobian1, state.regular, lam)
+    return MethodStep(dq, dp, v, new, result, None if work is None else work(v))
