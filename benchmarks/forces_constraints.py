@@ -2,13 +2,14 @@
 solution), and on the Cartesian pendulum and the four-bar linkage the largest
 constraint residuals |g(q)| and |G v| and the energy error over the first and the
 last tenth of a long run, for the variational solvers and Tsit5 on the same
-`LagrangianTerm` at the same step (the index-reduced ODE).
+`LagrangianTerm` at the same step (the index-reduced ODE). The cost per step of a
+constrained step is in `benchmarks/step_cost.py` (these runs save every step).
 
-Run: `python benchmarks/forces_constraints.py [--steps 100000]`.
+Run: `python benchmarks/forces_constraints.py [--steps 100000]`; the recorded output
+is `benchmarks/results/forces_constraints_cpu.txt`.
 """
 
 import argparse
-import time
 
 import diffrax as dfx
 import jax
@@ -74,14 +75,11 @@ def long_run(scene, solver, steps, h):
             max_steps=steps,
         )
 
-    jax.block_until_ready(run(scene.y0))
-    start = time.perf_counter()
-    sol = jax.block_until_ready(run(scene.y0))
-    seconds = time.perf_counter() - start
+    sol = run(scene.y0)
     e, g, hidden = (np.abs(np.asarray(x)) for x in sol.ys)
     e = np.abs(np.asarray(sol.ys[0]) - float(sol.ys[0][0]))
     tenth = steps // 10
-    return seconds, g.max(), hidden.max(), e[:tenth].max(), e[-tenth:].max()
+    return g.max(), hidden.max(), e[:tenth].max(), e[-tenth:].max()
 
 
 def main():
@@ -114,14 +112,14 @@ def main():
         )
         for name, solver in solvers:
             try:
-                seconds, g, hidden, first, last = long_run(scene, solver, args.steps, h)
+                g, hidden, first, last = long_run(scene, solver, args.steps, h)
             except Exception as e:  # the vector field's own error, e.g. after drift
                 said = [line for line in str(e).splitlines() if "singular" in line]
                 print(f"  {name:<24} failed: {(said or [repr(e)])[0][:150]}")
                 continue
             print(
                 f"  {name:<24} |g| {g:8.1e}  |Gv| {hidden:8.1e}  energy {first:8.1e} "
-                f"-> {last:8.1e}  ({1e6 * seconds / args.steps:.1f} us/step)"
+                f"-> {last:8.1e}"
             )
 
 
