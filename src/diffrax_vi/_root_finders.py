@@ -134,7 +134,21 @@ def _newton_terminate(tol: float, state: NewtonState):
     return converged | diverged | failed, result
 
 
-class Newton(AbstractVIRootFinder):
+class AbstractNewtonFamily(AbstractVIRootFinder):
+    """Newton's method and its variants: a `NewtonState`, the tolerance
+    `sqrt(eps)` by default, and the pivots of their dense factorisations."""
+
+    def tolerance(self, y: PyTree) -> float:
+        return newton_tolerance(tree_dtype(y)) if self.rtol is None else self.rtol
+
+    def pivot_ratio(self, state: NewtonState) -> Scalar:
+        return state.pivot_ratio
+
+    def terminate(self, fn, y, args, options, state, tags):
+        return _newton_terminate(self.tolerance(y), state)
+
+
+class Newton(AbstractNewtonFamily):
     r"""Newton's method for the implicit steps of the variational solvers and for
     the inverse Legendre map, as an `optimistix` root finder.
 
@@ -186,17 +200,11 @@ class Newton(AbstractVIRootFinder):
             return newton_is_dense(tree_size(y))
         return self.linear_solver == "dense"
 
-    def tolerance(self, y: PyTree) -> float:
-        return newton_tolerance(tree_dtype(y)) if self.rtol is None else self.rtol
-
     def carry_init(self, y: PyTree) -> PyTree:
         return None
 
     def final_carry(self, state: NewtonState) -> PyTree:
         return None
-
-    def pivot_ratio(self, state: NewtonState) -> Scalar:
-        return state.pivot_ratio
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         return _newton_init(y, options.get("carry"))
@@ -277,9 +285,6 @@ class Newton(AbstractVIRootFinder):
         )
         return y_new, new, scale
 
-    def terminate(self, fn, y, args, options, state, tags):
-        return _newton_terminate(self.tolerance(y), state)
-
 
 def _backtrack(fn, y, args, delta, rho, scale):
     """The first of `y - delta`, `y - delta/2`, ... (at most `MAX_HALVINGS`) whose
@@ -306,7 +311,7 @@ def _backtrack(fn, y, args, delta, rho, scale):
     return jtu.tree_map(lambda a, b: a - alpha * b, y, delta)
 
 
-class SimplifiedNewton(AbstractVIRootFinder):
+class SimplifiedNewton(AbstractNewtonFamily):
     r"""The simplified Newton (chord) method, with one dense LU factorisation of the
     Jacobian kept across iterations *and steps*.
 
@@ -343,12 +348,6 @@ class SimplifiedNewton(AbstractVIRootFinder):
     def final_carry(self, state: NewtonState) -> PyTree:
         return state.carry
 
-    def tolerance(self, y: PyTree) -> float:
-        return newton_tolerance(tree_dtype(y)) if self.rtol is None else self.rtol
-
-    def pivot_ratio(self, state: NewtonState) -> Scalar:
-        return state.pivot_ratio
-
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         carry = options.get("carry")
         return _newton_init(y, self.carry_init(y) if carry is None else carry)
@@ -378,9 +377,6 @@ class SimplifiedNewton(AbstractVIRootFinder):
             rho, rho, pivot_ratio(lu), state.step + 1, result, (lu, piv, fresh)
         )
         return unravel(flat - delta), new, scale
-
-    def terminate(self, fn, y, args, options, state, tags):
-        return _newton_terminate(self.tolerance(y), state)
 
 
 class FixedPointState(eqx.Module):
