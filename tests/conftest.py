@@ -30,6 +30,20 @@ def _release_compiled_programs():
 
 
 @pytest.fixture
+def as_a_user_runs_it():
+    """Runtime type checks off, as a user runs the library: the suite adds
+    jaxtyping's import hook (`--jaxtyping-packages`), under which a string outside a
+    `Literal` option fails its type check before the library's own `ValueError`
+    that names the choices."""
+    import jaxtyping
+
+    before = jaxtyping.config.jaxtyping_disable
+    jaxtyping.config.update("jaxtyping_disable", True)
+    yield
+    jaxtyping.config.update("jaxtyping_disable", before)
+
+
+@pytest.fixture
 def getkey():
     keys = iter(jax.random.split(jax.random.key(5678), 1000))
     return lambda: next(keys)

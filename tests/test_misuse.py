@@ -228,6 +228,13 @@ def test_root_finder_settings_out_of_range_are_refused(make):
         make()
 
 
+def test_string_options_outside_their_choices_are_refused(as_a_user_runs_it):
+    with pytest.raises(ValueError, match="'auto', 'dense', 'krylov'"):
+        dvi.Newton(linear_solver="lu")
+    with pytest.raises(ValueError, match="'forward' or 'centered'"):
+        dvi.LinearizedVI(velocity="central")
+
+
 def test_reversible_controller_fails_a_zero_step_and_refuses_a_non_symmetric_solver(
     symplectic_euler_tableau,
 ):

@@ -373,8 +373,8 @@ def test_linearized_backward_vmap_grad():
     )
 
 
-def test_linearized_bad_velocity():
-    with pytest.raises(ValueError, match="forward"):
+def test_linearized_bad_velocity(as_a_user_runs_it):
+    with pytest.raises(ValueError, match="'forward' or 'centered'"):
         dvi.LinearizedVI(velocity="backward")
 
 
