@@ -122,8 +122,12 @@ def rattle_step(
         jtu.tree_map(lambda p, m: jnp.broadcast_to(m, jnp.shape(p)), p0, mass)
     )[0]
 
+    def half_step(lam):
+        """$p_{1/2}$, flat."""
+        return kicked + jacobian0.T @ lam
+
     def increment(lam):
-        return unravel(h * (kicked + jacobian0.T @ lam) / flat_mass)
+        return unravel(h * half_step(lam) / flat_mass)
 
     def residual(lam):
         q1 = step.end_position(increment(lam))
@@ -135,9 +139,7 @@ def rattle_step(
     q1 = step.end_position(dq)
     force1 = force(t1, q1)
     jacobian1 = constraint_jacobian(g, t1, q1, args)
-    end = unravel(
-        kicked + jacobian0.T @ lam + 0.5 * h * jax.flatten_util.ravel_pytree(force1)[0]
-    )
+    end = unravel(half_step(lam) + 0.5 * h * jax.flatten_util.ravel_pytree(force1)[0])
     projected = project_separable(
         term.lagrangian, jacobian1, constraint_rate(g, t1, q1, args), end
     )
