@@ -48,6 +48,32 @@ def test_a_nan_force_of_a_separable_term_is_reported_by_solve_fixed_steps():
     assert sol.t_reached == 0.0 and sol.num_steps == 0
 
 
+def test_a_separable_term_built_to_check_every_step_raises_on_nan():
+    """`check_every_step=True` puts the check back into a separable term's vector
+    field: a friction from rest, and a NaN parameter of the potential in `args`,
+    raise under a fixed-step Runge-Kutta solve instead of ending as a success; at a
+    finite force the solve is the unchecked term's."""
+    spring = dvi.SeparableLagrangian(lambda t, q, args: 0.5 * args * q**2)
+    friction = lambda t, q, v, args: -0.1 * v / jnp.abs(v)
+    for term, args in [
+        (dvi.LagrangianTerm(spring, friction, check_every_step=True), 1.0),
+        (dvi.LagrangianTerm(spring, check_every_step=True), jnp.nan),
+    ]:
+        with pytest.raises(eqx.EquinoxRuntimeError, match="gave NaN or inf"):
+            dfx.diffeqsolve(term, dfx.Tsit5(), 0.0, 1.0, 0.1, Y0, args, throw=False)
+    # The same equations without the check: the NaN is carried to a "success".
+    unchecked = dvi.LagrangianTerm(spring, friction)
+    sol = dfx.diffeqsolve(unchecked, dfx.Tsit5(), 0.0, 1.0, 0.1, Y0, 1.0)
+    assert sol.result == dfx.RESULTS.successful and not jnp.isfinite(sol.ys[0]).all()
+    moving = (jnp.array(1.0), jnp.array(0.3))
+    checked = dvi.LagrangianTerm(spring, friction, check_every_step=True)
+    a, b = (
+        dfx.diffeqsolve(t, dfx.Tsit5(), 0.0, 1.0, 0.1, moving, 1.0).ys
+        for t in (checked, unchecked)
+    )
+    assert jnp.isfinite(a[0]).all() and a[0] == b[0] and a[1] == b[1]
+
+
 def test_solve_fixed_steps_reports_nan_starts_and_overflow_of_diffrax_solvers():
     term = dvi.LagrangianTerm(_oscillator)
     nan = dvi.solve_fixed_steps(

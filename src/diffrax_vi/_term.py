@@ -110,12 +110,15 @@ class LagrangianTerm(dfx.AbstractTerm):
         settled when the term is built (its mass is checked then), so its vector
         field carries no such check and runs at the speed of Hamilton's equations
         written by hand; a mass replaced in the term afterwards is not checked again.
+        There a NaN from the potential or the force is carried to the end of a
+        fixed-step Runge–Kutta solve, as for any diffrax `ODETerm`, unless the term
+        is built with `check_every_step=True`.
     """
 
     lagrangian: AbstractLagrangian
     force: Callable[..., PyTree] | None
     constraint: Callable[..., ArrayLike] | None
-    # Whether the vector field can skip its per-step check; see `mass_settles_velocity`.
+    # Whether the vector field skips its per-step check; see `mass_settles_velocity`.
     mass_checked: bool = eqx.field(static=True)
 
     def __init__(
@@ -123,6 +126,8 @@ class LagrangianTerm(dfx.AbstractTerm):
         lagrangian: Callable[..., ArrayLike],
         force: Callable[..., PyTree] | None = None,
         constraint: Callable[..., ArrayLike] | None = None,
+        *,
+        check_every_step: bool = False,
     ):
         """**Arguments:**
 
@@ -135,6 +140,14 @@ class LagrangianTerm(dfx.AbstractTerm):
         - `constraint`: holonomic constraints `constraint(t, q, args)`, an array of
             `m` values that the motion keeps at zero, or `None`. Start from a
             consistent state: [`diffrax_vi.project_onto_constraints`][].
+        - `check_every_step`: make the vector field raise at every evaluation that
+            gives NaN or inf at a finite state, also for a separable Lagrangian
+            without constraints, whose vector field otherwise carries no check. The
+            check is a host callback in the time-stepping loop, which XLA then no
+            longer compiles as one function: a diffrax Runge–Kutta step on a small
+            system costs several times more (`benchmarks/step_cost.py`). The
+            variational solvers and [`diffrax_vi.solve_fixed_steps`][] report such a
+            NaN without it.
         """
         self.lagrangian = as_lagrangian(lagrangian)
         for name, fn in (("force", force), ("constraint", constraint)):
@@ -155,8 +168,10 @@ class LagrangianTerm(dfx.AbstractTerm):
                     "this Lagrangian lives on a group. A rigid body needs none: "
                     "its attitude on SO3 is exact."
                 )
-        self.mass_checked = constraint is None and mass_settles_velocity(
-            self.lagrangian
+        self.mass_checked = (
+            not check_every_step
+            and constraint is None
+            and mass_settles_velocity(self.lagrangian)
         )
 
     def hamilton(
