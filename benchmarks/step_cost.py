@@ -18,9 +18,10 @@
   hand-written `ODETerm` of Hamilton's equations (target <= 1.2x at either XLA
   setting): the handicap a Runge-Kutta method would carry into every study.
 
-By default the script first calls `diffrax_vi.compile_small_loops_whole()` (as the
-`diffrax-vi` command line does), so that XLA compiles the small loops of both sides
-as one function; `--xla-default` keeps XLA's default 1 kB threshold instead.
+By default the script runs at the setting `import diffrax_vi` chooses
+(`diffrax_vi.compile_small_loops_whole()`), so that XLA compiles the small loops of
+both sides as one function; `--xla-default` keeps XLA's default 1 kB threshold
+instead (`diffrax_vi.keep_xla_default()`).
 
 On Kepler (2 degrees of freedom) and Fermi-Pasta-Ulam-like chains of 64 and 4096
 particles with quartic springs, whose force costs about as much as an axpy. As a
@@ -69,15 +70,18 @@ def add_xla_option(parser):
     parser.add_argument(
         "--xla-default",
         action="store_true",
-        help="keep XLA's default small-loop threshold (1 kB) instead of "
-        "diffrax_vi.compile_small_loops_whole()",
+        help="keep XLA's default small-loop threshold (1 kB) instead of the one "
+        "`import diffrax_vi` sets",
     )
 
 
 def apply_xla_option(args) -> str:
-    """Raise the small-loop threshold unless `--xla-default`; before JAX runs
-    anything. Returns the setting, to print."""
-    if not args.xla_default:
+    """The raised small-loop threshold that `import diffrax_vi` sets (also when
+    `DIFFRAX_VI_XLA_DEFAULT` kept it from doing so), or XLA's default with
+    `--xla-default`; before JAX runs anything. Returns the setting, to print."""
+    if args.xla_default:
+        dvi.keep_xla_default()
+    else:
         dvi.compile_small_loops_whole()
     return f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}"
 
@@ -255,6 +259,14 @@ def small_system(lagrangian, y0, h, n, repeats):
             f"{t_term / t_hand:5.2f}x on a hand-written ODETerm ({t_hand:.3f} us; "
             "target <= 1.2)"
         )
+    # What the opt-in NaN check of every evaluation costs (a host callback).
+    checked = dvi.LagrangianTerm(lagrangian, check_every_step=True)
+    t_checked = us(best_time(solve(checked, dfx.Tsit5()), y0, repeats=repeats))
+    t_term = us(best_time(solve(term, dfx.Tsit5()), y0, repeats=repeats))
+    print(
+        f"  Tsit5  on LagrangianTerm(check_every_step=True) {t_checked:9.3f} us = "
+        f"{t_checked / t_term:5.2f}x unchecked ({t_term:.3f} us; the user's choice)"
+    )
 
 
 def final_state(term, solver, h, n):
