@@ -20,8 +20,8 @@ REBOUND's IAS15.
    kahan_li8: wall time and the largest relative energy error over the run.
 
 Writes `adaptive_<problem>.png` and `adaptive.csv` into `--out` (default
-`benchmarks/results`). The small-loop threshold is raised as the command line
-raises it (`--xla-default` keeps XLA's). Run: `python benchmarks/adaptive.py
+`benchmarks/results`). The small-loop threshold is the one `import diffrax_vi`
+sets (`--xla-default` keeps XLA's). Run: `python benchmarks/adaptive.py
 [--quick]` (about ten minutes; `--quick`: 10^2 orbits and smaller grids).
 """
 

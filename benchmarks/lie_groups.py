@@ -17,8 +17,8 @@
   orthogonality, the Casimir's change and the energy error in the first and last
   tenth, for TrapezoidalVI, MidpointVI and jax-md (its quaternion's norm).
 
-By default the script first calls `diffrax_vi.compile_small_loops_whole()`, as the
-command line does; `--xla-default` keeps XLA's default threshold.
+By default the script runs at the small-loop threshold `import diffrax_vi` sets;
+`--xla-default` keeps XLA's default threshold.
 
 Run: `taskset -c 1 python benchmarks/lie_groups.py [--repeats 5] [--xla-default]`.
 """

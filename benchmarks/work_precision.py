@@ -9,8 +9,8 @@ solution (Kepler's equation); Henon-Heiles is chaotic at this energy, so its glo
 error is against Dopri8 at rtol = atol = 1e-13 and means little past 10^2 periods
 (reported as NaN there).
 
-As the `diffrax-vi` command does, the script first calls
-`diffrax_vi.compile_small_loops_whole()`; `--xla-default` keeps XLA's default.
+The script runs at the small-loop threshold `import diffrax_vi` sets (as the
+`diffrax-vi` command does); `--xla-default` keeps XLA's default.
 
 Run: `python benchmarks/work_precision.py [--quick] [--scenes kepler] [--horizons 100]`
 (minutes to tens of minutes).

@@ -12,9 +12,9 @@ import pytest
 
 DOCS = pathlib.Path(__file__).parent.parent / "docs"
 _PYTHON_BLOCK = re.compile(r"^```python\n(.*?)^```", re.S | re.M)
-# XLA reads the small-loop setting when its backend starts: a block that sets it is a
-# script's first lines, so it runs in a process of its own.
-_OWN_PROCESS = "compile_small_loops_whole()"
+# XLA reads the small-loop setting when its backend starts: a block that changes it is
+# a script's first lines, so it runs in a process of its own.
+_OWN_PROCESS = "keep_xla_default()"
 
 
 def _run(source: str, tmp_path: pathlib.Path, name: str):

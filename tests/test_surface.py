@@ -188,32 +188,56 @@ SMALL_LOOP_PROGRAM = """
 """
 
 
-def test_small_loops_compile_whole_only_when_asked():
-    """`compile_small_loops_whole` reaches XLA: the composition's time-stepping loop
-    (over 1 kB with compensated summation) is compiled as one function with it and
-    not without; a second call, or one with the option already in XLA_FLAGS, leaves
-    it alone; a call after JAX has started is an error, not silently ignored."""
-    plain = _run(SMALL_LOOP_PROGRAM.format(before="", after=""), XLA_FLAGS="")
+def test_import_compiles_small_loops_whole_unless_opted_out():
+    """`import diffrax_vi` raises XLA's small-loop threshold: the composition's
+    time-stepping loop (over 1 kB with compensated summation) is compiled as one
+    function, and not with `DIFFRAX_VI_XLA_DEFAULT=1` or after `keep_xla_default()`;
+    a threshold in the user's `XLA_FLAGS` stands; changing the setting after JAX
+    has started is an error, not silently ignored."""
+    plain = _run(
+        SMALL_LOOP_PROGRAM.format(before="", after=""),
+        XLA_FLAGS="",
+        DIFFRAX_VI_XLA_DEFAULT="1",
+    )
     assert plain.returncode == 0, plain.stderr
-    asked = _run(
+    imported = _run(
         SMALL_LOOP_PROGRAM.format(
-            before="assert dvi.compile_small_loops_whole()\n"
-            "    assert not dvi.compile_small_loops_whole()",
-            after="""import os
-    os.environ["XLA_FLAGS"] = ""
-    try:
-        dvi.compile_small_loops_whole(1 << 20)
-    except RuntimeError as e:
-        assert "before JAX starts" in str(e)
-    else:
-        raise AssertionError("no error after the backend started")""",
+            before="",
+            after="""for change in ["keep_xla_default", "compile_small_loops_whole"]:
+        try:
+            getattr(dvi, change)()
+        except RuntimeError as e:
+            assert "before JAX starts" in str(e)
+        else:
+            raise AssertionError("no error after the backend started")""",
         ),
         XLA_FLAGS="",
     )
-    assert asked.returncode == 0, asked.stderr
+    assert imported.returncode == 0, imported.stderr
     # The inner loop over the substeps is small either way; the outer one only with
     # the threshold raised.
-    assert int(asked.stdout) == int(plain.stdout) + 1, (plain.stdout, asked.stdout)
+    assert int(imported.stdout) == int(plain.stdout) + 1, (plain, imported.stdout)
+    undone = _run(
+        SMALL_LOOP_PROGRAM.format(
+            before="assert dvi.keep_xla_default()\n"
+            "    assert not dvi.keep_xla_default()",
+            after="",
+        ),
+        XLA_FLAGS="",
+    )
+    assert undone.returncode == 0, undone.stderr
+    assert int(undone.stdout) == int(plain.stdout), undone.stdout
+    users = _run(
+        SMALL_LOOP_PROGRAM.format(
+            before="assert not dvi.compile_small_loops_whole()\n"
+            "    assert not dvi.keep_xla_default()",
+            after="",
+        ),
+        XLA_FLAGS="--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0",
+    )
+    assert users.returncode == 0, users.stderr
+    # Not even the inner loop: the user's zero stands.
+    assert int(users.stdout) < int(plain.stdout), (plain.stdout, users.stdout)
     with pytest.raises(ValueError, match="non-negative integer"):
         dvi.compile_small_loops_whole(-1)
 

@@ -59,7 +59,14 @@ from ._term import (
     separable_terms as separable_terms,
     terms_for as terms_for,
 )
-from ._xla import compile_small_loops_whole as compile_small_loops_whole
+from ._xla import (
+    compile_small_loops_whole as compile_small_loops_whole,
+    keep_xla_default as keep_xla_default,
+    raise_on_import as _raise_on_import,
+)
 
 
 __version__ = importlib.metadata.version("diffrax_vi")
+
+# Small loops compiled whole on CPU; the reasons and the opt-out are in `_xla`.
+_raise_on_import()

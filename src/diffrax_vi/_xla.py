@@ -12,7 +12,8 @@ costs several times the step's arithmetic (`benchmarks/step_cost.py` and
 `benchmarks/study_cost.py` measure both settings).
 
 The threshold is read once, when JAX starts its CPU backend, from the environment
-variable `XLA_FLAGS`; it cannot be set per compilation.
+variable `XLA_FLAGS`; it cannot be set per compilation. So `import diffrax_vi` raises
+it (`raise_on_import`), unless the user opted out or set it, or JAX already started.
 """
 
 import os
@@ -28,12 +29,41 @@ from ._private_api import backends_are_initialized
 # larger threshold made them slower); `benchmarks/scaling.py` measures both.
 SMALL_LOOP_BYTES = 1 << 22
 
+# Set (to anything but "" or "0") before `import diffrax_vi` to keep XLA's default.
+OPT_OUT = "DIFFRAX_VI_XLA_DEFAULT"
+
 _OPTION = "xla_cpu_small_while_loop_byte_threshold"
+_EXTRA = "--xla_backend_extra_options="
+
+# `XLA_FLAGS` as it was before this package changed it, or None if it did not.
+_flags_before: str | None = None
 
 
 def small_loop_flag(threshold_bytes: int) -> str:
     """The `XLA_FLAGS` entry that sets the threshold."""
-    return f"--xla_backend_extra_options={_OPTION}={threshold_bytes}"
+    return f"{_EXTRA}{_OPTION}={threshold_bytes}"
+
+
+def _with_threshold(flags: str, threshold_bytes: int) -> str:
+    # XLA takes one set of backend options: join an existing one rather than add a
+    # second flag, which would replace it.
+    entry = f"{_OPTION}={threshold_bytes}"
+    match = re.search(rf"{_EXTRA}(\S+)", flags)
+    if match is None:
+        return f"{flags} {_EXTRA}{entry}".strip()
+    return flags[: match.end()] + "," + entry + flags[match.end() :]
+
+
+def _raised_by_user(flags: str) -> bool:
+    return _flags_before is None and re.search(rf"\b{_OPTION}=", flags) is not None
+
+
+def _too_late(what: str, fix: str) -> RuntimeError:
+    return RuntimeError(
+        f"{what} must be called before JAX starts its backend (before the first "
+        "array is created or computation run): XLA reads XLA_FLAGS only then. Call "
+        f"it right after the imports, or {fix} before starting Python."
+    )
 
 
 def compile_small_loops_whole(threshold_bytes: int = SMALL_LOOP_BYTES) -> bool:
@@ -43,30 +73,65 @@ def compile_small_loops_whole(threshold_bytes: int = SMALL_LOOP_BYTES) -> bool:
     whose Newton and Krylov loops cross XLA's threshold (the ratios are on the
     [Benchmarks](../benchmarks.md) page). No effect on GPUs.
 
-    Call it before JAX runs anything (the first array created or computation run
-    starts the backend, which reads the setting once); `import jax` and
-    `import diffrax_vi` are fine. The `diffrax-vi` command line calls it itself.
+    `import diffrax_vi` already does this with the default `threshold_bytes`
+    (see [`diffrax_vi.keep_xla_default`][] to undo it); call it to choose another
+    threshold, before JAX runs anything (the first array created or computation run
+    starts the backend, which reads the setting once).
 
-    Returns `False` and changes nothing if `XLA_FLAGS` already sets the threshold
-    (the user's choice stands); `True` once set.
+    Returns `False` and changes nothing if the user's own `XLA_FLAGS` sets the
+    threshold (their choice stands); `True` once set.
 
     **Raises:** `RuntimeError` if JAX's backend has already started, as the setting
     would then be silently ignored.
     """
+    global _flags_before
     if not isinstance(threshold_bytes, int) or threshold_bytes < 0:
         raise ValueError(
             f"threshold_bytes must be a non-negative integer; got {threshold_bytes!r}."
         )
     flags = os.environ.get("XLA_FLAGS", "")
-    if re.search(rf"\b{_OPTION}=", flags):
+    if _raised_by_user(flags):
         return False
     if backends_are_initialized():
-        raise RuntimeError(
-            "compile_small_loops_whole() must be called before JAX starts its "
-            "backend (before the first array is created or computation run): XLA "
-            "reads XLA_FLAGS only then. Call it right after the imports, or set "
-            f"the environment variable XLA_FLAGS={small_loop_flag(threshold_bytes)} "
-            "before starting Python."
+        flag = small_loop_flag(threshold_bytes)
+        raise _too_late(
+            "compile_small_loops_whole()",
+            f"set the environment variable XLA_FLAGS={flag}",
         )
-    os.environ["XLA_FLAGS"] = f"{flags} {small_loop_flag(threshold_bytes)}".strip()
+    if _flags_before is None:
+        _flags_before = flags
+    os.environ["XLA_FLAGS"] = _with_threshold(_flags_before, threshold_bytes)
     return True
+
+
+def keep_xla_default() -> bool:
+    """Undo the threshold that `import diffrax_vi` (or
+    [`diffrax_vi.compile_small_loops_whole`][]) set: XLA's own default, 1 kB. Call
+    it before JAX runs anything, or set the environment variable
+    `DIFFRAX_VI_XLA_DEFAULT=1` before the import, which keeps the package from
+    setting it at all.
+
+    Returns `True` if it removed this package's setting, `False` if there was none
+    (a threshold in the user's own `XLA_FLAGS` stays).
+
+    **Raises:** `RuntimeError` if this package's setting is in force and JAX's
+    backend has already started, so it can no longer be undone.
+    """
+    global _flags_before
+    if _flags_before is None:
+        return False
+    if backends_are_initialized():
+        raise _too_late(
+            "keep_xla_default()", f"set the environment variable {OPT_OUT}=1"
+        )
+    os.environ["XLA_FLAGS"] = _flags_before
+    _flags_before = None
+    return True
+
+
+def raise_on_import() -> None:
+    """What `import diffrax_vi` does: `compile_small_loops_whole()`, unless
+    `DIFFRAX_VI_XLA_DEFAULT` is set, the user's `XLA_FLAGS` sets the threshold, or
+    JAX's backend has already started (then the import changes nothing)."""
+    if os.environ.get(OPT_OUT, "") in ("", "0") and not backends_are_initialized():
+        compile_small_loops_whole()

@@ -9,9 +9,6 @@ import sys
 
 import jax
 
-from ._private_api import backends_are_initialized
-from ._xla import compile_small_loops_whole
-
 
 DEFAULT_SOLVERS = "MidpointVI,StormerVerlet,KahanLi8,Tsit5,Dopri8,Dopri8+PID"
 DEFAULT_OUT = "diffrax-vi-results"
@@ -397,11 +394,8 @@ def main(argv: list[str] | None = None) -> int:
     """Run the command line on `argv` (default: `sys.argv[1:]`); returns the exit
     code: 0 on success, 2 for a bad option (one line on stderr, before any work).
 
-    In a fresh process it first lets XLA compile small loops whole
-    ([`diffrax_vi.compile_small_loops_whole`][]): the studies of few-degree-of-freedom
-    scenes run several times faster on CPU, and every method gets the same setting."""
-    if not backends_are_initialized():
-        compile_small_loops_whole()
+    It runs at the XLA setting that `import diffrax_vi` chose
+    ([`diffrax_vi.compile_small_loops_whole`][]), the same for every method."""
     parser = _parser()
     try:
         args = parser.parse_args(argv)
