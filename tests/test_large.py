@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import scipy.integrate
 from diffrax_vi import scenes
+from diffrax_vi._tolerance import NEWTON_DENSE_MAX
 
 from .helpers import final_state, max_abs_diff, reference
 
@@ -150,10 +151,11 @@ def test_krylov_falls_back_where_bicgstab_breaks_down():
 
 
 def test_large_separable_midpoint_equals_dense_newton():
-    # A separable chain of 40 masses: the fixed-point iteration, with Newton-Krylov
-    # (CG, preconditioned by the inverse mass) as its fallback, against dense Newton.
-    # Tracing the fallback used to fail for more than 64 unknowns.
-    n = 40
+    # A separable chain just past NEWTON_DENSE_MAX masses, so that Newton is
+    # matrix-free: the fixed-point iteration, with Newton-Krylov (CG, preconditioned
+    # by the inverse mass) as its fallback, against dense Newton (whose unrolled LU
+    # costs most of the test's compile time, growing with n).
+    n = NEWTON_DENSE_MAX + 4
     masses = jnp.linspace(1.0, 3.0, n)
 
     def potential(t, q, args):

@@ -426,15 +426,17 @@ def test_cli_reads_integer_and_tuple_parameters_and_refuses_bad_ones():
 def test_a_run_that_raises_is_a_row_of_the_study():
     """Tsit5 on the four-bar linkage at 50 steps per turn drifts off the closure
     into a singular configuration within 100 turns, and its vector field raises:
-    that row says so, and MidpointVI's row is kept."""
+    that row says so, and the other rows are kept: adaptive Tsit5's, which stays
+    near the closure, here rather than a variational solver's, whose constrained
+    steps on this general Lagrangian take twice as long to compile."""
     study = dvi.study.drift(
         dvi.scenes.four_bar(),
-        ["Tsit5", "MidpointVI"],
+        ["Tsit5", "Tsit5+PID"],
         periods=100,
         steps_per_period=50,
         n_save=10,
     )
     rows = {run.solver: run for run in study.runs}
     assert rows["Tsit5"].result.startswith("raised: The constraint forces cannot")
-    assert rows["MidpointVI"].result == "successful"
+    assert rows["Tsit5+PID"].result == "successful"
     assert "1 run(s) failed" in study.verdict()
