@@ -406,6 +406,19 @@ def test_satellite_on_a_product_space_converges_and_keeps_its_angular_momentum()
     assert jnp.max(jnp.abs(end[1][1] - scene.y0[1][1])) > 1e-4
 
 
+def test_perturbed_states_stay_on_the_group():
+    """`Scene.perturbed` on SO(3) moves each attitude along the group: orthogonal to
+    round-off, the first member the scene's own start, the others moved."""
+    scene = dvi.scenes.free_rigid_body()
+    q, p = scene.perturbed(jax.random.key(0), 8, spread=1e-2)
+    gram = jnp.einsum("nji,njk->nik", q, q) - jnp.eye(3)[None]
+    assert jnp.max(jnp.abs(gram)) < 1e-14
+    assert jnp.array_equal(q[0], scene.y0[0]) and jnp.array_equal(p[0], scene.y0[1])
+    assert jnp.min(jnp.max(jnp.abs(q[1:] - q[:1]), axis=(1, 2))) > 1e-4
+
+
+@pytest.mark.slow  # 35 s compiling; perturbed states are checked above, ensembles in
+# test_study, the group's invariants under MidpointVI in the tests above
 def test_drift_study_of_an_ensemble_on_the_group():
     """The study's ensemble (vmap over states that `Scene.perturbed` moves along
     SO(3)): every member keeps the group and its Casimir."""
