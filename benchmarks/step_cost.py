@@ -86,14 +86,23 @@ def apply_xla_option(args) -> str:
     return f"XLA_FLAGS={os.environ.get('XLA_FLAGS', '')!r}"
 
 
-def best_time(fn, *args, repeats):
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
+def best_times(fns, *args, repeats):
+    """The best of `repeats` wall times of each of `fns` on `args`, taken in turns
+    (one run of each per round), so that the machine's slow spells, which come and
+    go over seconds, fall on every side of a ratio alike."""
+    for fn in fns:
         jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - start)
-    return min(times)
+    times = [[] for _ in fns]
+    for _ in range(repeats):
+        for fn, spent in zip(fns, times):
+            start = time.perf_counter()
+            jax.block_until_ready(fn(*args))
+            spent.append(time.perf_counter() - start)
+    return [min(spent) for spent in times]
+
+
+def best_time(fn, *args, repeats):
+    return best_times([fn], *args, repeats=repeats)[0]
 
 
 def run(name, lagrangian, y0, h, n, repeats, implicit=True):
@@ -239,8 +248,7 @@ def small_system(lagrangian, y0, h, n, repeats):
     ours, bare = midpoint(y0), bare_midpoint(y0)
     gap = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(ours, bare))
     assert gap < 1e-9, f"MidpointVI and the bare implicit midpoint differ by {gap}"
-    t_mid = us(best_time(midpoint, y0, repeats=repeats))
-    t_bare = us(best_time(bare_midpoint, y0, repeats=repeats))
+    t_mid, t_bare = map(us, best_times([midpoint, bare_midpoint], y0, repeats=repeats))
     print(f"  bare fixed-point implicit midpoint {t_bare:9.3f} us")
     print(
         f"  MidpointVI                         {t_mid:9.3f} us = "
@@ -252,8 +260,12 @@ def small_system(lagrangian, y0, h, n, repeats):
     by_hand = dfx.ODETerm(lambda t, y, args: (y[1] / lagrangian.mass, force(y[0])))
     for solver in (dfx.Tsit5(), dfx.Dopri8()):
         name = type(solver).__name__
-        t_term = us(best_time(solve(term, solver), y0, repeats=repeats))
-        t_hand = us(best_time(solve(by_hand, solver), y0, repeats=repeats))
+        t_term, t_hand = map(
+            us,
+            best_times(
+                [solve(term, solver), solve(by_hand, solver)], y0, repeats=repeats
+            ),
+        )
         print(
             f"  {name:<6} on LagrangianTerm {t_term:9.3f} us = "
             f"{t_term / t_hand:5.2f}x on a hand-written ODETerm ({t_hand:.3f} us; "
@@ -261,8 +273,12 @@ def small_system(lagrangian, y0, h, n, repeats):
         )
     # What the opt-in NaN check of every evaluation costs (a host callback).
     checked = dvi.LagrangianTerm(lagrangian, check_every_step=True)
-    t_checked = us(best_time(solve(checked, dfx.Tsit5()), y0, repeats=repeats))
-    t_term = us(best_time(solve(term, dfx.Tsit5()), y0, repeats=repeats))
+    t_checked, t_term = map(
+        us,
+        best_times(
+            [solve(checked, dfx.Tsit5()), solve(term, dfx.Tsit5())], y0, repeats=repeats
+        ),
+    )
     print(
         f"  Tsit5  on LagrangianTerm(check_every_step=True) {t_checked:9.3f} us = "
         f"{t_checked / t_term:5.2f}x unchecked ({t_term:.3f} us; the user's choice)"
@@ -313,9 +329,9 @@ def constrained(repeats):
     n, h = 20_000, scene.period / 100
     free = dvi.LagrangianTerm(scene.lagrangian)
 
-    def per_step(term, solver):
-        run = final_state(term, solver, h, n)
-        return 1e6 * best_time(run, scene.y0, repeats=repeats) / n
+    def per_step(terms, solver):
+        runs = [final_state(term, solver, h, n) for term in terms]
+        return [1e6 * t / n for t in best_times(runs, scene.y0, repeats=repeats)]
 
     print(
         f"\nCartesian pendulum, constrained over unconstrained: {n} steps, us per step"
@@ -324,7 +340,7 @@ def constrained(repeats):
         ("TrapezoidalVI", dvi.TrapezoidalVI()),
         ("MidpointVI", dvi.MidpointVI()),
     ):
-        t_c, t_f = per_step(scene.term(), solver), per_step(free, solver)
+        t_c, t_f = per_step([scene.term(), free], solver)
         print(
             f"  {name:14s} {t_c:9.3f} us = {t_c / t_f:5.2f}x unconstrained "
             f"({t_f:.3f} us; target <= 3)"
