@@ -20,25 +20,44 @@ def pivot_ratio(lu: Array) -> Scalar:
     return jnp.min(pivots) / jnp.max(pivots)
 
 
-def unrolled_lu_solve(matrix: Array, b: Array) -> tuple[Array, Scalar]:
-    """`matrix^-1 b` by Gaussian elimination with partial pivoting, unrolled into
-    XLA operations, and the ratio of the smallest to the largest pivot.
+def unrolled_lu_factor(matrix: Array) -> tuple[Array, Array]:
+    """Gaussian elimination with partial pivoting, unrolled into XLA operations:
+    `(lu, perm)` with `matrix[perm] = L U`, the unit lower factor `L` below the
+    diagonal of `lu` and `U` on and above it.
 
-    For Newton's dense solves (`newton_is_dense`) in place of `lineax.LU`, whose
-    LAPACK call keeps XLA on CPU from compiling the surrounding loop whole, which
-    costs a small system's step several times its arithmetic
-    (`benchmarks/step_cost.py`)."""
-    n = b.shape[0]
-    a = jnp.concatenate([matrix, b[:, None]], axis=1)
+    For the dense solves of small systems in place of LAPACK's, whose call keeps XLA
+    on CPU from compiling the surrounding loop whole, which costs a small system's
+    step several times its arithmetic (`benchmarks/step_cost.py`)."""
+    n = matrix.shape[0]
+    a, perm = matrix, jnp.arange(n)
     for k in range(n):
         i = k + jnp.argmax(jnp.abs(a[k:, k]))
-        row_k, row_i = a[k], a[i]
-        a = a.at[k].set(row_i).at[i].set(row_k)
-        a = a.at[k + 1 :].add(-(a[k + 1 :, k] / a[k, k])[:, None] * a[k][None, :])
+        a = a.at[k].set(a[i]).at[i].set(a[k])
+        perm = perm.at[k].set(perm[i]).at[i].set(perm[k])
+        factors = a[k + 1 :, k] / a[k, k]
+        a = a.at[k + 1 :, k + 1 :].add(-factors[:, None] * a[k, k + 1 :][None, :])
+        a = a.at[k + 1 :, k].set(factors)
+    return a, perm
+
+
+def unrolled_lu_apply(lu: Array, perm: Array, b: Array) -> Array:
+    """`matrix^-1 b` from `unrolled_lu_factor(matrix)`: two triangular solves."""
+    n = b.shape[0]
+    y = b[perm]
+    for k in range(n):
+        y = y.at[k + 1 :].add(-lu[k + 1 :, k] * y[k])
     x = jnp.zeros_like(b)
     for k in reversed(range(n)):
-        x = x.at[k].set((a[k, n] - a[k, :n] @ x) / a[k, k])
-    return x, pivot_ratio(a[:, :n])
+        x = x.at[k].set((y[k] - lu[k, k + 1 :] @ x[k + 1 :]) / lu[k, k])
+    return x
+
+
+def unrolled_lu_solve(matrix: Array, b: Array) -> tuple[Array, Scalar]:
+    """`matrix^-1 b` by `unrolled_lu_factor`, and the ratio of the smallest to the
+    largest pivot; for Newton's dense solves (`newton_is_dense`) in place of
+    `lineax.LU`."""
+    lu, perm = unrolled_lu_factor(matrix)
+    return unrolled_lu_apply(lu, perm, b), pivot_ratio(lu)
 
 
 def _magnitude(tree: PyTree) -> Scalar:

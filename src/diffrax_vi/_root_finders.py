@@ -36,7 +36,13 @@ import optimistix as optx
 from equinox import AbstractClassVar, AbstractVar
 from jaxtyping import Array, Int, PyTree, Scalar
 
-from ._linear import krylov_solve, pivot_ratio, unrolled_lu_solve
+from ._linear import (
+    krylov_solve,
+    pivot_ratio,
+    unrolled_lu_apply,
+    unrolled_lu_factor,
+    unrolled_lu_solve,
+)
 from ._misc import tree_dtype, tree_size, tree_sub
 from ._private_api import unvmap_any
 from ._tolerance import (
@@ -359,17 +365,25 @@ class SimplifiedNewton(AbstractNewtonFamily):
         lu, piv, fresh = state.carry
         refactor = ~fresh | ~(rho <= self.kappa * state.rho_prev)
 
+        # Small systems factorise without LAPACK, as Newton's dense solves do, so
+        # that XLA can compile the loop around them whole; `piv` is then the row
+        # order, else LAPACK's pivots.
+        unrolled = newton_is_dense(flat.shape[0])
+
         def factorise():
             jac = jax.jacfwd(
                 lambda x: jax.flatten_util.ravel_pytree(fn(unravel(x), args)[0])[0]
             )(flat)
-            lu, piv = jax.scipy.linalg.lu_factor(jac)
-            return lu, piv, jnp.array(True)
+            factors = unrolled_lu_factor if unrolled else jax.scipy.linalg.lu_factor
+            lu, piv = factors(jac)
+            return lu, piv.astype(jnp.int32), jnp.array(True)
 
         lu, piv, fresh = lax.cond(refactor, factorise, lambda: (lu, piv, fresh))
-        delta = jax.scipy.linalg.lu_solve(
-            (lu, piv), jax.flatten_util.ravel_pytree(f)[0]
-        )
+        flat_f = jax.flatten_util.ravel_pytree(f)[0]
+        if unrolled:
+            delta = unrolled_lu_apply(lu, piv, flat_f)
+        else:
+            delta = jax.scipy.linalg.lu_solve((lu, piv), flat_f)
         result = optx.RESULTS.where(
             jnp.all(jnp.isfinite(delta)), optx.RESULTS.successful, optx.RESULTS.singular
         )
