@@ -188,56 +188,39 @@ SMALL_LOOP_PROGRAM = """
 """
 
 
+def _small_loops(before: str = "", after: str = "", **env) -> int:
+    """How many loops `SMALL_LOOP_PROGRAM` compiles whole, run in a fresh process."""
+    out = _run(SMALL_LOOP_PROGRAM.format(before=before, after=after), **env)
+    assert out.returncode == 0, out.stderr
+    return int(out.stdout)
+
+
 def test_import_compiles_small_loops_whole_unless_opted_out():
     """`import diffrax_vi` raises XLA's small-loop threshold: the composition's
     time-stepping loop (over 1 kB with compensated summation) is compiled as one
     function, and not with `DIFFRAX_VI_XLA_DEFAULT=1` or after `keep_xla_default()`;
     a threshold in the user's `XLA_FLAGS` stands; changing the setting after JAX
     has started is an error, not silently ignored."""
-    plain = _run(
-        SMALL_LOOP_PROGRAM.format(before="", after=""),
-        XLA_FLAGS="",
-        DIFFRAX_VI_XLA_DEFAULT="1",
-    )
-    assert plain.returncode == 0, plain.stderr
-    imported = _run(
-        SMALL_LOOP_PROGRAM.format(
-            before="",
-            after="""for change in ["keep_xla_default", "compile_small_loops_whole"]:
+    plain = _small_loops(XLA_FLAGS="", DIFFRAX_VI_XLA_DEFAULT="1")
+    too_late = """for change in ["keep_xla_default", "compile_small_loops_whole"]:
         try:
             getattr(dvi, change)()
         except RuntimeError as e:
             assert "before JAX starts" in str(e)
         else:
-            raise AssertionError("no error after the backend started")""",
-        ),
-        XLA_FLAGS="",
-    )
-    assert imported.returncode == 0, imported.stderr
+            raise AssertionError("no error after the backend started")"""
     # The inner loop over the substeps is small either way; the outer one only with
     # the threshold raised.
-    assert int(imported.stdout) == int(plain.stdout) + 1, (plain, imported.stdout)
-    undone = _run(
-        SMALL_LOOP_PROGRAM.format(
-            before="assert dvi.keep_xla_default()\n"
-            "    assert not dvi.keep_xla_default()",
-            after="",
-        ),
-        XLA_FLAGS="",
-    )
-    assert undone.returncode == 0, undone.stderr
-    assert int(undone.stdout) == int(plain.stdout), undone.stdout
-    users = _run(
-        SMALL_LOOP_PROGRAM.format(
-            before="assert not dvi.compile_small_loops_whole()\n"
-            "    assert not dvi.keep_xla_default()",
-            after="",
-        ),
-        XLA_FLAGS="--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0",
-    )
-    assert users.returncode == 0, users.stderr
+    assert _small_loops(after=too_late, XLA_FLAGS="") == plain + 1
+    undo = "assert dvi.keep_xla_default()\n    assert not dvi.keep_xla_default()"
+    assert _small_loops(undo, XLA_FLAGS="") == plain
     # Not even the inner loop: the user's zero stands.
-    assert int(users.stdout) < int(plain.stdout), (plain.stdout, users.stdout)
+    keep = (
+        "assert not dvi.compile_small_loops_whole()\n"
+        "    assert not dvi.keep_xla_default()"
+    )
+    zero = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0"
+    assert _small_loops(keep, XLA_FLAGS=zero) < plain
     with pytest.raises(ValueError, match="non-negative integer"):
         dvi.compile_small_loops_whole(-1)
 
