@@ -46,8 +46,7 @@ def main():
     args = parser.parse_args()
     print(f"jax {jax.__version__}, {apply_xla_option(args)}")
     jax.jit(lambda x: x + 1).lower(jnp.zeros(())).compile()
-    e = 0.6
-    kepler_y0 = (jnp.array([1 - e, 0.0]), jnp.array([0.0, ((1 + e) / (1 - e)) ** 0.5]))
+    kepler_y0 = dvi.scenes.kepler(eccentricity=0.6).y0
     chain_y0 = (jnp.sin(jnp.linspace(0, jnp.pi, 64)), jnp.zeros(64))
     pendulum = dvi.scenes.double_pendulum()
     kepler = dvi.LagrangianTerm(Kepler())

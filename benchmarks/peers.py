@@ -120,7 +120,7 @@ def main():
     )
     h = 2 * np.pi / PER_ORBIT
     n = ORBITS * PER_ORBIT
-    y0 = (jnp.array([1 - E, 0.0]), jnp.array([0.0, ((1 + E) / (1 - E)) ** 0.5]))
+    y0 = dvi.scenes.kepler(eccentricity=E).y0
     e0 = float(_energy(y0[0][None], y0[1][None])[0])
     pair = dvi.separable_terms(Kepler())
     term = dvi.LagrangianTerm(Kepler())

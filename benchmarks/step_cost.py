@@ -359,8 +359,7 @@ def main():
         f"jax {jax.__version__}, diffrax {importlib.metadata.version('diffrax')}, "
         f"device {jax.devices()[0]}, {setting}"
     )
-    e = 0.6
-    kepler_y0 = (jnp.array([1 - e, 0.0]), jnp.array([0.0, ((1 + e) / (1 - e)) ** 0.5]))
+    kepler_y0 = dvi.scenes.kepler(eccentricity=0.6).y0
     run("Kepler (2 DOF)", Kepler(), kepler_y0, 2 * jnp.pi / 200, 100_000, args.repeats)
     small_system(Kepler(), kepler_y0, 2 * jnp.pi / 200, 100_000, args.repeats)
     for n, steps, implicit in [(64, 5_000, True), (4096, 2_000, False)]:
