@@ -31,9 +31,10 @@ def unrolled_lu_factor(matrix: Array) -> tuple[Array, Array]:
     n = matrix.shape[0]
     a, perm = matrix, jnp.arange(n)
     for k in range(n):
-        i = k + jnp.argmax(jnp.abs(a[k:, k]))
-        a = a.at[k].set(a[i]).at[i].set(a[k])
-        perm = perm.at[k].set(perm[i]).at[i].set(perm[k])
+        if k < n - 1:  # The last column has no choice of pivot.
+            i = k + jnp.argmax(jnp.abs(a[k:, k]))
+            a = a.at[k].set(a[i]).at[i].set(a[k])
+            perm = perm.at[k].set(perm[i]).at[i].set(perm[k])
         factors = a[k + 1 :, k] / a[k, k]
         a = a.at[k + 1 :, k + 1 :].add(-factors[:, None] * a[k, k + 1 :][None, :])
         a = a.at[k + 1 :, k].set(factors)

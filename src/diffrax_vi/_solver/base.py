@@ -10,10 +10,12 @@ Hermite dense output.
 """
 
 import abc
+from collections.abc import Callable
 from typing import ClassVar, NamedTuple
 
 import diffrax as dfx
 import equinox as eqx
+import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
@@ -23,7 +25,7 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 from .._custom_types import Args, P, Q, RealScalarLike, V
 from .._lagrangian import momentum_offset
 from .._misc import split_state, state_dtype, sum_is_finite
-from .._private_api import AdjointTerm, NoForwardingSolverMeta, WrapTerm
+from .._private_api import AdjointTerm, NoForwardingSolverMeta, unvmap_any, WrapTerm
 from .._space import is_euclidean, retract, velocity
 from .._term import LagrangianTerm
 
@@ -92,6 +94,21 @@ def step_control(term: dfx.AbstractTerm, substep: Substep) -> PyTree:
     if isinstance(substep.fraction, float) and substep.fraction == 1.0:
         return control
     return jtu.tree_map(lambda c: substep.fraction * c, control)
+
+
+def after_jump(
+    made_jump: bool | Bool[ArrayLike, ""],
+    recompute: Callable[[], PyTree],
+    cached: PyTree,
+) -> PyTree:
+    """What a step starts from: `cached` (kept from the last step), or `recompute()`
+    after a jump, when the cache belongs to the state before it. Where diffrax
+    knows at trace time that no jump happens (`made_jump` is the Python `False`: no
+    events, no jump times), the step takes `cached` with no branch at all, which
+    saves the loop a conditional per step."""
+    if made_jump is False:
+        return cached
+    return lax.cond(unvmap_any(made_jump), recompute, lambda: cached)
 
 
 def initial_compensation(y: PyTree, enabled: bool) -> PyTree | None:

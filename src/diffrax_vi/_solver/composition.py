@@ -375,7 +375,8 @@ class Composition(AbstractSymplecticSolver, AbstractComposableSolver):
                 y,
                 args,
                 state,
-                jnp.logical_and(made_jump, k == 0),
+                # Kept static where diffrax knows there is no jump (`after_jump`).
+                made_jump if made_jump is False else jnp.logical_and(made_jump, k == 0),
                 Substep(substep.fraction * gamma, substep.t0, substep.t1),
             )
             result = dfx.RESULTS.where(

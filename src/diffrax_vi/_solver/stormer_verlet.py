@@ -3,17 +3,16 @@ from typing import ClassVar
 
 import diffrax as dfx
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 from jaxtyping import ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, P, Q, RealScalarLike
 from .._misc import all_finite, split_state, sum_is_finite, tree_add
-from .._private_api import unvmap_any
 from .base import (
     AbstractComposableSolver,
     AbstractSymplecticSolver,
+    after_jump,
     check_times,
     compensated_add,
     initial_compensation,
@@ -157,10 +156,10 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractComposableSolver):
         term_q, term_p = terms
         q0, p0 = y0
         # After a jump the cached force belongs to the state before the jump.
-        force0 = jax.lax.cond(
-            unvmap_any(made_jump),
+        force0 = after_jump(
+            made_jump,
             lambda: poisoned_force(term_p.vf(t0, q0, args), y0),
-            lambda: solver_state.force,
+            solver_state.force,
         )
         control_q = step_control(term_q, substep)
         control_p = step_control(term_p, substep)

@@ -2,7 +2,6 @@ from typing import ClassVar
 
 import diffrax as dfx
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import optimistix as optx
@@ -16,12 +15,12 @@ from .._lagrangian import (
     generalised_force,
     mass_regular,
 )
-from .._private_api import unvmap_any
 from .._root_finders import Newton
 from .base import (
     AbstractComposableSolver,
     AbstractSymplecticSolver,
     AbstractVariationalSolver,
+    after_jump,
     MethodStep,
     StepInputs,
     without_force,
@@ -195,10 +194,10 @@ class TrapezoidalVI(
         self, step: StepInputs, state: "ExplicitState", made_jump
     ) -> MethodStep:
         # After a jump the cached force belongs to the state before the jump.
-        force0 = jax.lax.cond(
-            unvmap_any(made_jump),
+        force0 = after_jump(
+            made_jump,
             lambda: poisoned_force(_force(step, step.t0, step.q0), (step.q0, step.p0)),
-            lambda: state.force,
+            state.force,
         )
         h = step.h
         mass = broadcast_mass(step.term.lagrangian.mass, step.p0)
