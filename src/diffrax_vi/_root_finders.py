@@ -334,6 +334,16 @@ class SimplifiedNewton(AbstractNewtonFamily):
     rare, so a step costs little more than the fixed-point iteration, while, unlike
     it, converging on stiff problems. Dense, so for small and medium systems.
 
+    It stops where Newton's method does, after the update from an iterate whose
+    residual is below `rtol` ($\sqrt\epsilon$ by default). That update leaves
+    round-off only under Newton's quadratic convergence; the chord method converges
+    linearly, so its steps are solved to about $\sqrt\epsilon$ times its
+    contraction, and the step map is symplectic to that level rather than to
+    round-off (on the double pendulum at 100 steps a period its states are 1e-8
+    from Newton's after 150 steps). Run on to round-off, it took eleven iterations
+    a step there on average. For round-off symplecticity use
+    [`diffrax_vi.Newton`][].
+
     **Arguments:**
 
     - `rtol`: as for [`diffrax_vi.Newton`][].
