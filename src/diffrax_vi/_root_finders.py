@@ -47,6 +47,7 @@ from ._misc import tree_dtype, tree_size, tree_sub
 from ._private_api import unvmap_any
 from ._tolerance import (
     check_fraction,
+    FAST_CONTRACTION,
     KRYLOV_FLOOR,
     MAX_HALVINGS,
     newton_is_dense,
@@ -260,7 +261,7 @@ class Newton(AbstractNewtonFamily):
                     forcing,
                     tags,
                     self.krylov_max_steps,
-                    options.get("preconditioner"),
+                    _plain_preconditioner(options.get("preconditioner")),
                 )
                 # A Krylov solve breaks down where the Newton matrix is singular or
                 # indefinite, far from a root (a step too large): Newton's method has
@@ -410,11 +411,70 @@ class SimplifiedNewton(AbstractNewtonFamily):
         return unravel(flat - delta), new, scale
 
 
+class WithMultipliers(eqx.Module):
+    """The preconditioner of the unknowns `(w, lam)` of a constrained step of a
+    separable Lagrangian: one over the mass of each of the step's unknowns `w`; the
+    constraint multipliers `lam` have no mass, and [`diffrax_vi.FixedPoint`][]
+    solves for them exactly in each iteration (`_with_multipliers`)."""
+
+    inverse_mass: PyTree
+
+
+def _plain_preconditioner(preconditioner: PyTree | None) -> PyTree | None:
+    """The diagonal preconditioner of a Krylov solve: none for `WithMultipliers`,
+    whose multipliers have no mass."""
+    return None if isinstance(preconditioner, WithMultipliers) else preconditioner
+
+
+def _with_multipliers(fn, y, args, f, inverse_mass) -> tuple[PyTree, PyTree]:
+    r"""The fixed-point update `(dw, dlam)` of the constrained step equations
+    $r = (r_w, r_g)$ in $(w, \lambda)$: the Newton update with the Jacobian's block
+    $\partial r_w/\partial w$ replaced by the mass matrix $P$, as in the
+    unconstrained iteration, and the other blocks exact. With
+    $B = \partial r_w/\partial\lambda$, $C = \partial r_g/\partial w$ and
+    $D = \partial r_g/\partial\lambda$, the multipliers solve the $m \times m$
+    Schur complement $(D - C P^{-1} B)\,\delta\lambda = r_g - C P^{-1} r_w$ and
+    $\delta w = P^{-1}(r_w - B\,\delta\lambda)$. $B$, $C$ and $D$ are
+    Jacobian-vector products along the multipliers and of $r_g$ alone: no
+    derivative of the force. Also returns $P^{-1} B\,\delta\lambda$, the part
+    of the update the multipliers make."""
+    w, lam = y
+    r_w, r_g = f
+    m = lam.shape[0]
+    weigh = lambda tree: jtu.tree_map(lambda p, x: p * x, inverse_mass, tree)
+
+    def along_multipliers(d):
+        return jax.jvp(lambda x: fn((w, x), args)[0], (lam,), (d,))[1]
+
+    def constraint_along(dw):
+        return jax.jvp(lambda x: fn((x, lam), args)[0][1], (w,), (dw,))[1]
+
+    eye = jnp.eye(m, dtype=lam.dtype)
+    b_cols, d_cols = jax.vmap(along_multipliers)(eye)  # row j: column j
+    weighted_b = jax.vmap(weigh)(b_cols)
+    c_weighted_b = jax.vmap(constraint_along)(weighted_b)
+    schur = (d_cols - c_weighted_b).T
+    rhs = r_g - constraint_along(weigh(r_w))
+    if newton_is_dense(m):
+        dlam, _ = unrolled_lu_solve(schur, rhs)
+    else:
+        dlam = lx.linear_solve(
+            lx.MatrixLinearOperator(schur), rhs, lx.LU(), throw=False
+        ).value
+    from_multipliers = jtu.tree_map(
+        lambda x: jnp.tensordot(dlam, x, axes=1), weighted_b
+    )
+    dw = jtu.tree_map(lambda a, b: a - b, weigh(r_w), from_multipliers)
+    return (dw, dlam), from_multipliers
+
+
 class FixedPointState(eqx.Module):
-    """The dimensionless size of the last update and of the one before."""
+    """The dimensionless size of the last update and of the one before, and the
+    smallest ratio of successive sizes so far (1 before there is one)."""
 
     size: Scalar
     size_prev: Scalar
+    fastest: Scalar
     step: Int[Array, ""]
 
 
@@ -426,9 +486,16 @@ class FixedPoint(AbstractVIRootFinder):
 
     It converges while $h^2\lVert M^{-1}\nabla^2 V\rVert$ is small (non-stiff steps),
     and stops with `RESULTS.nonlinear_divergence` as soon as an iteration contracts
-    by less than `max_rate`. Where it converges, the Jacobian of the stage equations
+    by less than `max_rate`, unless it has already contracted a hundredfold in one
+    update and is below $\sqrt\epsilon$: it has then reached the round-off of its
+    equations and stops there. Where it converges, the Jacobian of the stage equations
     is within a factor `max_rate` of the mass matrix, so the root is the one that
     continues the motion.
+
+    With holonomic constraints the unknowns are the velocities and the constraint
+    multipliers $\lambda$: each iteration solves for $\lambda$ exactly given the
+    velocities' update (an $m \times m$ Schur complement, from derivatives of the
+    constraint alone), so it converges as fast as without constraints.
 
     **Arguments:**
 
@@ -466,28 +533,51 @@ class FixedPoint(AbstractVIRootFinder):
                 "(diffrax_vi.AbstractSeparableLagrangian); for this Lagrangian use "
                 "diffrax_vi.Newton() or diffrax_vi.SimplifiedNewton()."
             )
-        inf = jnp.array(jnp.inf, tree_dtype(y))
-        return FixedPointState(inf, inf, jnp.array(0))
+        dtype = tree_dtype(y)
+        inf = jnp.array(jnp.inf, dtype)
+        return FixedPointState(inf, inf, jnp.ones((), dtype), jnp.array(0))
 
     def step(self, fn, y, args, options, state, tags):
         f, scale = fn(y, args)
-        inverse_mass = options["preconditioner"]
-        weigh = lambda tree: jtu.tree_map(lambda p, x: p * x, inverse_mass, tree)
-        delta = weigh(f)
-        size = scaled_norm(delta, weigh(scale))
+        preconditioner = options["preconditioner"]
+        if isinstance(preconditioner, WithMultipliers):
+            inverse_mass = preconditioner.inverse_mass
+            weigh = lambda tree: jtu.tree_map(lambda p, x: p * x, inverse_mass, tree)
+            delta, from_multipliers = _with_multipliers(fn, y, args, f, inverse_mass)
+            # The velocities' update, and the part of it the multipliers' update
+            # makes (a multiplier still moving shows there even where the two
+            # cancel).
+            terms = weigh(scale[0])
+            size = jnp.maximum(
+                scaled_norm(delta[0], terms), scaled_norm(from_multipliers, terms)
+            )
+        else:
+            weigh = lambda tree: jtu.tree_map(lambda p, x: p * x, preconditioner, tree)
+            delta = weigh(f)
+            size = scaled_norm(delta, weigh(scale))
+        ratio = jnp.where(jnp.isfinite(state.size), size / state.size, 1.0)
+        fastest = jnp.minimum(state.fastest, ratio)
         return (
             tree_sub(y, delta),
-            FixedPointState(size, state.size, state.step + 1),
+            FixedPointState(size, state.size, fastest, state.step + 1),
             scale,
         )
 
     def terminate(self, fn, y, args, options, state, tags):
         converged = state.size <= self.tolerance(y)
-        too_slow = (
+        slow = (
             (state.step >= 2)
             & ~converged
             & ~(state.size <= self.max_rate * state.size_prev)
         )
+        # Slowing down below sqrt(eps) after a fast contraction: round-off.
+        at_roundoff = (
+            slow
+            & (state.size <= newton_tolerance(tree_dtype(y)))
+            & (state.fastest <= FAST_CONTRACTION)
+        )
+        converged = converged | at_roundoff
+        too_slow = slow & ~at_roundoff
         result = optx.RESULTS.where(
             too_slow, optx.RESULTS.nonlinear_divergence, optx.RESULTS.successful
         )

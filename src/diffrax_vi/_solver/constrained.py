@@ -35,6 +35,7 @@ from .._constraint import (
 )
 from .._custom_types import P, Q
 from .._misc import tree_add
+from .._root_finders import WithMultipliers
 from .._space import retract
 from .base import MethodStep, StepInputs
 from .unknowns import (
@@ -73,10 +74,14 @@ def constrained_step(
     root_finding: AbstractStepRootFinding,
     max_steps: int,
     work_at: Callable[[StepInputs, PyTree], Array] | None = None,
+    inverse_mass: PyTree | None = None,
 ) -> MethodStep:
     """One constrained step of the method whose unconstrained equations, increments
     and (with a force) work of its discrete forces are `residual_at(step, w)`,
-    `increments_at(step, w)` and `work_at(step, w)`. The constraint forces do no work
+    `increments_at(step, w)` and `work_at(step, w)`, and whose unknowns have the
+    inverse masses `inverse_mass` (a separable Lagrangian; `None` otherwise): the
+    default policy then iterates as without constraints, solving for the
+    multipliers in each iteration (`FixedPoint`). The constraint forces do no work
     on the constrained motion and are not counted."""
     g, t0, t1, q0, args = (
         step.term.constraint,
@@ -113,6 +118,7 @@ def constrained_step(
     equations = StepEquations(
         residual,
         increments,
+        inverse_mass=None if inverse_mass is None else WithMultipliers(inverse_mass),
         # The joint Jacobian of a saddle-point system is indefinite: no curvature
         # test (no `fold_residual`).
         work=None

@@ -109,6 +109,7 @@ class AbstractImplicitVI(
                 root_finding(self.root_finder),
                 self.root_find_max_steps,
                 None if step.term.force is None else self.stage_work,
+                self.inverse_mass(step),
             )
         equations = StepEquations(
             residual=lambda w: self.stage_residual(step, w),
