@@ -62,21 +62,8 @@ def _final(scene, solver, t1, dt, saveat=None, max_steps=4096):
         (dvi.MidpointVI(), 2, (40, 80, 160)),
         (dvi.TrapezoidalVI(), 2, (40, 80, 160)),
         (dvi.Composition(dvi.MidpointVI(), "yoshida4"), 4, (20, 40, 80)),
-        # The sixth and eighth orders on the group take a minute of compilation
-        # between them; the default suite keeps the fourth (the composition
-        # machinery is the same) and `-m slow` runs these.
-        pytest.param(
-            dvi.Composition(dvi.TrapezoidalVI(), "kahan_li6"),
-            6,
-            (10, 20, 40),
-            marks=pytest.mark.slow,
-        ),
-        pytest.param(
-            dvi.Composition(dvi.MidpointVI(), "kahan_li8"),
-            8,
-            (10, 15, 20),
-            marks=pytest.mark.slow,
-        ),
+        (dvi.Composition(dvi.TrapezoidalVI(), "kahan_li6"), 6, (10, 20, 40)),
+        (dvi.Composition(dvi.MidpointVI(), "kahan_li8"), 8, (10, 15, 20)),
     ],
     ids=["midpoint", "trapezoidal", "yoshida4", "kahan_li6", "kahan_li8"],
 )
