@@ -540,9 +540,10 @@ class FixedPoint(AbstractVIRootFinder):
     def step(self, fn, y, args, options, state, tags):
         f, scale = fn(y, args)
         preconditioner = options["preconditioner"]
-        if isinstance(preconditioner, WithMultipliers):
-            inverse_mass = preconditioner.inverse_mass
-            weigh = lambda tree: jtu.tree_map(lambda p, x: p * x, inverse_mass, tree)
+        constrained = isinstance(preconditioner, WithMultipliers)
+        inverse_mass = preconditioner.inverse_mass if constrained else preconditioner
+        weigh = lambda tree: jtu.tree_map(lambda p, x: p * x, inverse_mass, tree)
+        if constrained:
             delta, from_multipliers = _with_multipliers(fn, y, args, f, inverse_mass)
             # The velocities' update, and the part of it the multipliers' update
             # makes (a multiplier still moving shows there even where the two
@@ -552,7 +553,6 @@ class FixedPoint(AbstractVIRootFinder):
                 scaled_norm(delta[0], terms), scaled_norm(from_multipliers, terms)
             )
         else:
-            weigh = lambda tree: jtu.tree_map(lambda p, x: p * x, preconditioner, tree)
             delta = weigh(f)
             size = scaled_norm(delta, weigh(scale))
         ratio = jnp.where(jnp.isfinite(state.size), size / state.size, 1.0)
