@@ -1,21 +1,31 @@
-"""Per-step cost on SO(3), as ratios from one run: the heavy top (Lagrange top).
+"""Per-step cost on SO(3), as ratios from one run: the heavy top (Lagrange top) and
+the free rigid body.
 
-- TrapezoidalVI in diffeqsolve (saving only t1) over a bare `jax.lax.scan` of the
-  same update, written here by hand: Newton on the three unknowns of
-  $\\partial_\\xi\\Lambda = J_l(-h\\xi)(\\Pi_0 + h\\partial_g\\Lambda)$, iterated to
-  1e-13, then $R_1 = R_0\\exp(h\\xi)$, $\\Pi_1 = \\exp(h\\xi)^\\top(\\Pi_0 +
-  h\\partial_g\\Lambda)$ (target <= 1.3x), checked to agree;
-- MidpointVI the same way (its own discrete Lagrangian, the Lie midpoint);
-- Tsit5 on the same `LagrangianTerm` at the same step, which leaves SO(3);
+Each solver in `diffrax.diffeqsolve` (saving only t1) over a bare `jax.lax.scan` of
+the same update written here by hand, at its floor: small products as sums, 3 x 3
+solves in closed form (by cross products), no LAPACK call and no custom fusion in
+the loop (checked with `diffrax_vi.diagnostics.compiled_loop_breakers`), Newton
+iterated until the residual relative to its terms is below sqrt(eps) and then once
+more, as the solvers' Newton does; each pair checked to agree:
+
+- LGVI, the Cayley Lie group variational integrator of Lee, Leok & McClamroch
+  (target <= 1.3x);
+- TrapezoidalVI and MidpointVI with the exponential map: Newton on the three
+  unknowns of $\\partial_\\xi\\Lambda = J_l(-h\\xi)(\\Pi_0 +
+  h\\partial_g\\Lambda)$, then $R_1 = R_0\\exp(h\\xi)$, $\\Pi_1 =
+  \\exp(h\\xi)^\\top(\\Pi_0 + h\\partial_g\\Lambda)$ (target <= 1.3x);
+- Tsit5 on the `LagrangianTerm` over Tsit5 on a hand-written `ODETerm` of the same
+  equations, $\\dot R = R\\hat\\Omega$, $\\dot\\Pi = \\Pi\\times\\Omega + M$
+  (target <= 1.2x);
 - the free rigid body against jax-md's rigid-body integrator (the symplectic
   quaternion splitting of Miller et al. 2002, `jax_md.simulate.nve`; the `bench`
-  extra) at equal energy error: each method's largest energy error over 10^4 steps
-  at three step sizes (from a run that saves every step, not timed), a fitted
-  `error = C h^k`, and the wall time of a plain run (final state only) that reaches
-  jax-md's error at h = 0.1;
+  extra): each method's largest energy error over 10^4 steps at three step sizes
+  (from a run that saves every step, not timed), and its time per unit of simulated
+  time against jax-md's at h = 0.1, at the same step and at equal or lower energy
+  error;
 - the free rigid body over 10^6 steps at h = 0.1 (`--skip-long` skips it):
   orthogonality, the Casimir's change and the energy error in the first and last
-  tenth, for TrapezoidalVI, MidpointVI and jax-md (its quaternion's norm).
+  tenth, for LGVI, TrapezoidalVI, MidpointVI and jax-md (its quaternion's norm).
 
 By default the script runs at the small-loop threshold `import diffrax_vi` sets;
 `--xla-default` keeps XLA's default threshold.
@@ -30,7 +40,6 @@ import diffrax as dfx
 import jax
 import jax.numpy as jnp
 import jaxlie
-import numpy as np
 
 
 jax.config.update("jax_enable_x64", True)
@@ -40,12 +49,42 @@ from step_cost import (  # noqa: E402
     add_xla_option,
     apply_xla_option,
     best_time,
+    best_times,
     final_state,
 )
 
 
+def hat(w):
+    zero = jnp.zeros_like(w[0])
+    return jnp.stack(
+        [
+            jnp.stack([zero, -w[2], w[1]]),
+            jnp.stack([w[2], zero, -w[0]]),
+            jnp.stack([-w[1], w[0], zero]),
+        ]
+    )
+
+
+def matmul(a, b):
+    """`a @ b` for 3 x 3 matrices, as a sum (a small `dot` can become a custom
+    fusion that breaks the loop into kernels)."""
+    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+
+
+def rmatvec(a, x):
+    """`a.T @ x`, as a sum."""
+    return jnp.sum(a * x[:, None], axis=0)
+
+
 def exp(x):
     return jaxlie.SO3.exp(x).as_matrix()
+
+
+def cayley(x):
+    """(I - x^/2)^{-1} (I + x^/2)."""
+    x_hat = hat(x)
+    c = 4 / (4 + jnp.sum(x**2))
+    return jnp.eye(3) + c * (x_hat + 0.5 * matmul(x_hat, x_hat))
 
 
 def pull(x, w):
@@ -54,55 +93,151 @@ def pull(x, w):
     small = t2 < 1e-4
     safe = jnp.where(small, 1.0, t2)
     t = jnp.sqrt(safe)
-    a = jnp.where(small, 0.5 - t2 / 24, 2 * jnp.sin(0.5 * t) ** 2 / safe)
-    b = jnp.where(small, 1 / 6 - t2 / 120, (t - jnp.sin(t)) / (safe * t))
+    a = jnp.where(small, 0.5 - t2 / 24 + t2**2 / 720, 2 * jnp.sin(0.5 * t) ** 2 / safe)
+    b = jnp.where(small, 1 / 6 - t2 / 120 + t2**2 / 5040, (t - jnp.sin(t)) / (safe * t))
     xw = jnp.cross(x, w)
     return w - a * xw + b * jnp.cross(x, xw)
 
 
-def bare_trapezoidal(scene, h, n):
-    """The trapezoidal LGVI of the heavy top as a bare scan."""
+def cross_rows(a):
+    """The rows of the cofactor matrix of `a` (3 x 3), by cross products."""
+    return jnp.stack(
+        [jnp.cross(a[1], a[2]), jnp.cross(a[2], a[0]), jnp.cross(a[0], a[1])]
+    )
+
+
+def solve3(a, b):
+    """`a^{-1} b` for a 3 x 3 `a`, in closed form: the cofactors' rows are the
+    columns of `det(a) a^{-1}`."""
+    cof = cross_rows(a)
+    return jnp.sum(cof * b[:, None], axis=0) / jnp.sum(a[0] * cof[0])
+
+
+def newton(residual, jacobian, x, max_steps=16):
+    """Newton's method until the residual relative to its terms (`residual`
+    returns both) is below sqrt(eps), then one more update, as the solvers'."""
+    tol = float(jnp.finfo(x.dtype).eps) ** 0.5
+
+    def body(s):
+        x, _, k = s
+        r, size = residual(x)
+        rho = jnp.max(jnp.abs(r) / jnp.where(size > 0, size, 1))
+        return x - solve3(jacobian(x), r), rho, k + 1
+
+    def going(s):
+        _, rho, k = s
+        return (rho > tol) & (k < max_steps)
+
+    return jax.lax.while_loop(going, body, (x, jnp.inf, 0))[0]
+
+
+def rigid_body(scene):
+    """The heavy top's inertia and torque M(R) = -weight * chi x (R^T e3)."""
     lag = scene.lagrangian
     J, chi, weight = lag.inertia, lag.centre, lag.weight
-    potential = lambda R: weight * (R @ chi)[2]
+    return J, lambda R: -weight * jnp.cross(chi, R[2])
 
-    def average(eta, xi, R0):
-        # Differentiated at eta = 0 only: R0 (I + hat(eta)) has the same first
-        # derivative as R0 exp(eta) and costs less.
-        R = R0 + R0 @ jnp.cross(jnp.eye(3), eta)
-        return 0.5 * jnp.sum(J * xi**2) - 0.5 * (
-            potential(R) + potential(R @ exp(h * xi))
-        )
+
+def bare_lgvi(scene, h, n):
+    """Lee, Leok & McClamroch's Cayley LGVI as a bare scan: Newton on f in
+    2 J f = g + g x f + (f.g) f, g = h (Pi + h/2 M), Jacobian 2J - g^ - (f.g) I
+    - f g^T in closed form."""
+    J, torque = rigid_body(scene)
 
     def update(carry, _):
-        R0, pi0, xi = carry
-        zeros = jnp.zeros(3)
+        R0, pi0, m0, f, f_before = carry
+        kicked = pi0 + 0.5 * h * m0
+        g = h * kicked
 
-        def residual(xi):
-            d_eta, d_xi = jax.grad(average, argnums=(0, 1))(zeros, xi, R0)
-            return d_xi - pull(h * xi, pi0 + h * d_eta)
+        def residual(f):
+            gf, fg = jnp.cross(g, f), jnp.sum(f * g)
+            r = 2 * J * f - g - gf - fg * f
+            return r, 2 * J * jnp.abs(f) + jnp.abs(g) + jnp.abs(gf) + jnp.abs(fg * f)
 
-        def not_converged(s):
-            xi, step, k = s
-            return (jnp.max(jnp.abs(step)) > 1e-13 * jnp.max(jnp.abs(xi))) & (k < 20)
+        def jacobian(f):
+            fg = jnp.sum(f * g)
+            return jnp.diag(2 * J - fg) - hat(g) - f[:, None] * g[None, :]
 
-        def newton(s):
-            xi, _, k = s
-            step = jnp.linalg.solve(jax.jacfwd(residual)(xi), residual(xi))
-            return xi - step, step, k + 1
-
-        xi, _, _ = jax.lax.while_loop(not_converged, newton, (xi, jnp.ones(3), 0))
-        d_eta, _ = jax.grad(average, argnums=(0, 1))(zeros, xi, R0)
-        F = exp(h * xi)
-        return (R0 @ F, F.T @ (pi0 + h * d_eta), xi), None
+        # From the extrapolation of the last two steps, as the solvers guess.
+        f_new = newton(residual, jacobian, 2 * f - f_before)
+        F = cayley(2 * f_new)
+        R1 = matmul(R0, F)
+        m1 = torque(R1)
+        return (R1, rmatvec(F, kicked) + 0.5 * h * m1, m1, f_new, f), None
 
     @jax.jit
     def run(y0):
         R0, pi0 = y0
-        (R, pi, _), _ = jax.lax.scan(update, (R0, pi0, pi0 / J), None, length=n)
+        f0 = 0.5 * h * pi0 / J
+        (R, pi, *_), _ = jax.lax.scan(
+            update, (R0, pi0, torque(R0), f0, f0), None, length=n
+        )
         return R, pi
 
     return run
+
+
+def bare_exp_vi(scene, h, n, rule):
+    """TrapezoidalVI (`rule="trapezoidal"`) or MidpointVI (`"midpoint"`) on SO(3)
+    with the exponential map, as a bare scan: Newton on the step velocity xi of
+    d_xi Lambda = J_l(-h xi)(Pi0 + h d_g Lambda), its Jacobian by forward-mode
+    differentiation, written with sums and a closed-form 3 x 3 solve."""
+    J, torque = rigid_body(scene)
+    lag = scene.lagrangian
+    potential = lambda R: lag.potential(0.0, R, None)
+
+    def average(eta, xi, R0):
+        # Differentiated at eta = 0 only: R0 (I + hat(eta)) has the same first
+        # derivative as R0 exp(eta) and costs less.
+        R = R0 + matmul(R0, hat(eta))
+        kinetic = 0.5 * jnp.sum(J * xi**2)
+        if rule == "midpoint":
+            return kinetic - potential(matmul(R, exp(0.5 * h * xi)))
+        return kinetic - 0.5 * (potential(R) + potential(matmul(R, exp(h * xi))))
+
+    zeros = jnp.zeros(3)
+
+    def update(carry, _):
+        R0, pi0, xi, xi_before = carry
+
+        def residual(xi):
+            d_eta, d_xi = jax.grad(average, argnums=(0, 1))(zeros, xi, R0)
+            kicked = pi0 + h * d_eta
+            r = d_xi - pull(h * xi, kicked)
+            return r, jnp.abs(d_xi) + jnp.abs(pi0) + jnp.abs(h * d_eta)
+
+        jacobian = jax.jacfwd(lambda x: residual(x)[0])
+        # From the extrapolation of the last two steps, as the solvers guess.
+        xi_new = newton(residual, jacobian, 2 * xi - xi_before)
+        d_eta, _ = jax.grad(average, argnums=(0, 1))(zeros, xi_new, R0)
+        F = exp(h * xi_new)
+        return (matmul(R0, F), rmatvec(F, pi0 + h * d_eta), xi_new, xi), None
+
+    @jax.jit
+    def run(y0):
+        R0, pi0 = y0
+        xi0 = pi0 / J
+        (R, pi, *_), _ = jax.lax.scan(update, (R0, pi0, xi0, xi0), None, length=n)
+        return R, pi
+
+    return run
+
+
+def euler_ode_term(scene):
+    """Euler's equations of the rigid body written by hand: R' = R Omega^,
+    Pi' = Pi x Omega + M(R), Omega = Pi / J."""
+    J, torque = rigid_body(scene)
+
+    def field(t, y, args):
+        R, pi = y
+        omega = pi / J
+        return matmul(R, hat(omega)), jnp.cross(pi, omega) + torque(R)
+
+    return dfx.ODETerm(field)
+
+
+def agreement(ours, theirs):
+    return max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(ours, theirs))
 
 
 def jaxmd_free_body(scene, h, n, energies):
@@ -159,47 +294,38 @@ def free_body_energy_error(scene, solver, h, n):
 
 def equal_error(scene, repeats):
     n = 10_000
-    steps = (0.2, 0.1, 0.05)
+    steps = (0.4, 0.2, 0.1, 0.05)
     methods = {
+        "LGVI": dvi.LGVI(),
         "TrapezoidalVI": dvi.TrapezoidalVI(),
         "MidpointVI": dvi.MidpointVI(),
         "jax-md nve": "jax-md",
     }
     print(
-        f"\nfree rigid body: largest energy error over {n} steps, error = C h^k fitted "
-        f"at h = {steps}, us per step at h = 0.1 (best of {repeats})"
+        f"\nfree rigid body: largest energy error over {n} steps at h = {steps}; "
+        f"us per step at h = 0.1 (best of {repeats}); time per unit of simulated "
+        "time over jax-md's at h = 0.1, at the same h and at the largest h whose "
+        "energy error is at most jax-md's"
     )
-    fits = {}
+    rows = {}
     for name, solver in methods.items():
         errors = [free_body_energy_error(scene, solver, h, n) for h in steps]
-        k, log_c = np.polyfit(np.log(steps), np.log(errors), 1)
         if solver == "jax-md":
             run, state = jaxmd_free_body(scene, 0.1, n, energies=False)
             cost = best_time(run, state, repeats=repeats) / n
         else:
-            cost = (
-                best_time(
-                    final_state(scene.term(), solver, 0.1, n), scene.y0, repeats=repeats
-                )
-                / n
-            )
-        fits[name] = (k, log_c, cost)
+            run = final_state(scene.term(), solver, 0.1, n)
+            cost = best_time(run, scene.y0, repeats=repeats) / n
+        rows[name] = (errors, cost)
+    target = rows["jax-md nve"][0][steps.index(0.1)]
+    base = rows["jax-md nve"][1] / 0.1
+    for name, (errors, cost) in rows.items():
+        # Per-step cost hardly depends on h (Newton's iterations grow slowly).
+        h_equal = max(h for h, e in zip(steps, errors) if e <= target * (1 + 1e-9))
         print(
             f"  {name:14s} errors {', '.join(f'{e:.2e}' for e in errors)}; "
-            f"k = {k:.2f}; {1e6 * cost:7.3f} us per step"
-        )
-    target = float(np.exp(fits["jax-md nve"][1]) * 0.1 ** fits["jax-md nve"][0])
-
-    def time_to(name):
-        k, log_c, cost = fits[name]
-        h = np.exp((np.log(target) - log_c) / k)
-        return cost / h
-
-    base = time_to("jax-md nve")
-    for name in ("TrapezoidalVI", "MidpointVI"):
-        print(
-            f"  {name:14s} at jax-md's error at h = 0.1 ({target:.2e}): "
-            f"{time_to(name) / base:5.2f}x jax-md's wall time per unit time"
+            f"{1e6 * cost:7.3f} us per step; {cost / 0.1 / base:5.2f}x jax-md at "
+            f"h = 0.1, {cost / h_equal / base:5.2f}x at h = {h_equal}"
         )
 
 
@@ -211,6 +337,7 @@ def long_run(scene):
     orthogonality = scene.invariants["orthogonality"]
     ts = jnp.linspace(0.0, n * h, 1001)
     for name, solver in (
+        ("LGVI", dvi.LGVI()),
         ("TrapezoidalVI", dvi.TrapezoidalVI()),
         ("MidpointVI", dvi.MidpointVI()),
     ):
@@ -259,37 +386,40 @@ def main():
     term = scene.term()
     n = 20_000
     h = scene.period / 100
-    us = lambda t: 1e6 * t / n
     print(
         f"\nheavy top: {n} steps at h = period/100, us per step "
-        f"(best of {args.repeats})"
+        f"(best of {args.repeats}), each pair timed in turns"
     )
-    bare = bare_trapezoidal(scene, h, n)
-    trapezoidal = final_state(term, dvi.TrapezoidalVI(), h, n)
-    ours, theirs = trapezoidal(scene.y0), bare(scene.y0)
-    gap = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(ours, theirs))
-    assert gap < 1e-9, f"TrapezoidalVI and the bare update differ by {gap}"
-    t_bare = us(best_time(bare, scene.y0, repeats=args.repeats))
-    t_trap = us(best_time(trapezoidal, scene.y0, repeats=args.repeats))
-    t_mid = us(
-        best_time(
-            final_state(term, dvi.MidpointVI(), h, n), scene.y0, repeats=args.repeats
+    us = lambda t: 1e6 * t / n
+    pairs = (
+        ("LGVI", dvi.LGVI(), bare_lgvi(scene, h, n), 1.3),
+        (
+            "TrapezoidalVI",
+            dvi.TrapezoidalVI(),
+            bare_exp_vi(scene, h, n, "trapezoidal"),
+            1.3,
+        ),
+        ("MidpointVI", dvi.MidpointVI(), bare_exp_vi(scene, h, n, "midpoint"), 1.3),
+        ("Tsit5", dfx.Tsit5(), None, 1.2),
+    )
+    for name, solver, bare, target in pairs:
+        ours = final_state(term, solver, h, n)
+        if bare is None:
+            bare = final_state(euler_ode_term(scene), solver, h, n)
+            what = "Tsit5 on a hand-written ODETerm"
+        else:
+            what = f"bare lax.scan of {name}"
+        for fn in (ours, bare):
+            breakers = dvi.diagnostics.compiled_loop_breakers(fn, scene.y0)
+            assert not breakers, f"{name}: a loop is broken into kernels: {breakers}"
+        gap = agreement(ours(scene.y0), bare(scene.y0))
+        assert gap < 1e-9, f"{name} and the {what} differ by {gap}"
+        t_ours, t_bare = best_times([ours, bare], scene.y0, repeats=args.repeats)
+        print(
+            f"  {name:14s} {us(t_ours):7.3f} us, {what} {us(t_bare):7.3f} us: "
+            f"{t_ours / t_bare:5.2f}x (target <= {target}; states agree to "
+            f"{gap:.1e})"
         )
-    )
-    t_tsit = us(
-        best_time(final_state(term, dfx.Tsit5(), h, n), scene.y0, repeats=args.repeats)
-    )
-    print(f"  bare lax.scan, trapezoidal LGVI    {t_bare:9.3f} us")
-    print(
-        f"  TrapezoidalVI in diffeqsolve       {t_trap:9.3f} us = "
-        f"{t_trap / t_bare:5.2f}x the bare update (target <= 1.3; states agree to "
-        f"{gap:.1e})"
-    )
-    print(
-        f"  MidpointVI in diffeqsolve          {t_mid:9.3f} us = "
-        f"{t_mid / t_bare:5.2f}x the bare trapezoidal update"
-    )
-    print(f"  Tsit5 in diffeqsolve               {t_tsit:9.3f} us")
     free_body = dvi.scenes.free_rigid_body()
     equal_error(free_body, args.repeats)
     if not args.skip_long:

@@ -122,6 +122,31 @@ SLOW = (
     # The reversible adjoint through a constrained step: RATTLE's case runs by
     # default, MidpointVI's unconstrained case on Kepler.
     "test_adjoint.py::test_constrained_gradients_reach_the_term_and_the_constraint[Mid",
+    # The compiled loops of every scene: MidpointVI's run by default on each
+    # scene, TrapezoidalVI's and Tsit5's on the groups (where the products are).
+    *(
+        f"test_compiled_loops.py::test_no_loop_is_broken_into_kernels[{scene}-{s}]"
+        for scene in (
+            "kepler",
+            "falling_particle",
+            "oscillator",
+            "duffing",
+            "pendulum",
+            "double_pendulum",
+            "henon_heiles",
+            "fpu",
+            "outer_solar_system",
+            "pythagorean_three_body",
+            "learned",
+            "bead_wire",
+            "forced_duffing",
+            "cartesian_pendulum",
+            "four_bar",
+        )
+        for s in ("TrapezoidalVI", "Tsit5")
+    ),
+    # The LGVI's sixth order: its fourth and eighth run by default.
+    "test_rigid_body.py::test_lgvi_order_against_scipy[kahan_li6",
     # A composition takes Stormer-Verlet steps, whose reversal runs by default.
     "test_adjoint.py::test_kepler_gradients_equal_checkpointing[yoshida4",
 )

@@ -17,6 +17,7 @@ from ._discrete import (
 from ._lagrangian import (
     AbstractLagrangian as AbstractLagrangian,
     AbstractQuadraticLagrangian as AbstractQuadraticLagrangian,
+    AbstractRigidBodyLagrangian as AbstractRigidBodyLagrangian,
     AbstractSeparableLagrangian as AbstractSeparableLagrangian,
     energy as energy,
     Lagrangian as Lagrangian,
@@ -45,6 +46,7 @@ from ._solver import (
     Composition as Composition,
     CompositionScheme as CompositionScheme,
     GaussVPRK as GaussVPRK,
+    LGVI as LGVI,
     LinearizedVI as LinearizedVI,
     LobattoVPRK as LobattoVPRK,
     MidpointVI as MidpointVI,

@@ -26,9 +26,9 @@ from ._custom_types import Args, P, Q, RealScalarLike
 from ._lagrangian import (
     AbstractSeparableLagrangian,
     broadcast_mass,
+    inverse_legendre,
     legendre_residual,
     momentum,
-    velocity,
     velocity_is_explicit,
 )
 from ._linear import unrolled_lu_solve
@@ -179,7 +179,10 @@ def project_momentum(
     if velocity_is_explicit(term.lagrangian, p):
 
         def residual(mu):
-            v, _ = velocity(term.lagrangian, t, (q, moved(mu)), args)
+            # Inside the step: the solve's start has checked the quadratic marker.
+            v, _ = inverse_legendre(
+                term.lagrangian, t, (q, moved(mu)), args, None, check_promise=False
+            )
             return hidden_constraint(jacobian, v, rate)
 
         solved = solve(residual, mu0, Newton(), 16)

@@ -17,6 +17,7 @@ from ._linear import krylov_solve, unrolled_lu_solve
 from ._misc import all_finite, reads, split_state, state_dtype, tree_max_abs
 from ._private_api import unvmap_any
 from ._root_finders import Newton, solve
+from ._so3 import SO3
 from ._space import AbstractSpace, Euclidean, is_euclidean, left_gradient, tangent
 from ._tolerance import (
     AFFINE_MAX_STEPS,
@@ -130,6 +131,42 @@ class AbstractSeparableLagrangian(AbstractQuadraticLagrangian):
             for m, vi in zip(jtu.tree_leaves(mass), jtu.tree_leaves(v))
         )
         return kinetic - self.potential(t, q, args)
+
+
+class AbstractRigidBodyLagrangian(AbstractQuadraticLagrangian):
+    r"""Abstract base class for a rigid body on SO(3) with constant principal moments
+    of inertia, $L(t, R, \Omega) = \tfrac12\Omega^\top J\Omega - V(t, R,
+    \text{args})$, $J$ diagonal.
+
+    The velocity is then $\Omega = J^{-1}\Pi$, settled when the term is built (no
+    check in a Runge–Kutta solver's vector field), and [`diffrax_vi.LGVI`][], the
+    Lie group variational integrator of Lee, Leok & McClamroch, can step it.
+
+    Subclasses implement `potential` and define `inertia`, shape `(3,)`. `space` is
+    [`diffrax_vi.SO3`][] with the exponential map; a subclass may set
+    `space = SO3(retraction="cayley")`.
+    """
+
+    inertia: eqx.AbstractVar[ArrayLike]
+    space: ClassVar[PyTree[AbstractSpace]] = SO3()
+
+    @abc.abstractmethod
+    def potential(self, t: RealScalarLike, R: Q, args: Args) -> Scalar:
+        """The potential energy $V(t, R, \text{args})$, a scalar."""
+
+    def __call__(self, t: RealScalarLike, q: Q, v: V, args: Args) -> Scalar:
+        return 0.5 * jnp.sum(self.inertia * v**2) - self.potential(t, q, args)
+
+
+def constant_mass(lagrangian: AbstractLagrangian, p: P) -> P | None:
+    """The constant diagonal mass that a Lagrangian declares, with the structure of
+    `p` (the `mass` of a separable Lagrangian, the `inertia` of a rigid body), or
+    `None` for a Lagrangian that declares none."""
+    if isinstance(lagrangian, AbstractSeparableLagrangian):
+        return broadcast_mass(lagrangian.mass, p)
+    if isinstance(lagrangian, AbstractRigidBodyLagrangian):
+        return jnp.broadcast_to(jnp.asarray(lagrangian.inertia), jnp.shape(p))
+    return None
 
 
 class SeparableLagrangian(AbstractSeparableLagrangian):
@@ -294,8 +331,8 @@ def momentum(
     The momentum, a PyTree with the structure of `v`.
     """
     lagrangian = as_lagrangian(lagrangian)
-    if isinstance(lagrangian, AbstractSeparableLagrangian):
-        mass = broadcast_mass(lagrangian.mass, v)
+    mass = constant_mass(lagrangian, v)
+    if mass is not None:
         return jtu.tree_map(lambda m, vi: m * vi, mass, v)
     return jax.grad(lambda _v: lagrangian_value(lagrangian, t, q, _v, args))(v)
 
@@ -329,9 +366,9 @@ def momentum_offset(lagrangian: AbstractLagrangian, t, q: Q, args: Args) -> P:
     depend on the velocity (a magnetic or Coriolis term `A(q)` in `M v + A(q)`); zero
     for a separable Lagrangian. A residual's scale includes it: the momentum can
     vanish while its terms do not, and then only they say what round-off is."""
-    if isinstance(lagrangian, AbstractSeparableLagrangian):
-        return tangent(lagrangian.space, q)
     zeros = tangent(lagrangian.space, q)
+    if constant_mass(lagrangian, zeros) is not None:
+        return zeros
     return jtu.tree_map(jnp.abs, momentum(lagrangian, t, q, zeros, args))
 
 
@@ -516,10 +553,25 @@ def velocity(
     invert the map of a regular Lagrangian, `RESULTS.nonfinite` where a finite state
     gave a NaN or inf velocity (NaN in the Lagrangian, its parameters or `args`).
     """
+    return inverse_legendre(lagrangian, t, y, args, v_guess, check_promise=True)
+
+
+def inverse_legendre(
+    lagrangian: Callable[..., ArrayLike],
+    t: RealScalarLike,
+    y: tuple[Q, P],
+    args: Args,
+    v_guess: V | None,
+    check_promise: bool,
+) -> tuple[V, dfx.RESULTS]:
+    """[`diffrax_vi.velocity`][], and with `check_promise=False` without the check
+    that a Lagrangian marked quadratic in `v` is (a host callback: inside a
+    time-stepping loop, where the solve's start has checked it, it would keep XLA
+    from compiling the loop whole)."""
     lagrangian = as_lagrangian(lagrangian)
     q, p = split_state(y, "y", lagrangian.space)
-    if isinstance(lagrangian, AbstractSeparableLagrangian):
-        mass = broadcast_mass(lagrangian.mass, p)
+    mass = constant_mass(lagrangian, p)
+    if mass is not None:
         v = jtu.tree_map(lambda m, pi: pi / m, mass, p)
         result = dfx.RESULTS.where(
             mass_regular(mass, p), dfx.RESULTS.successful, dfx.RESULTS.singular
@@ -546,11 +598,13 @@ def velocity(
         regular = ~(ratio <= singular_threshold(n, dtype))
         # The marker is a promise: if `L` is not quadratic in `v` after all, the one
         # solve is wrong, and the residual at its answer says so.
-        v = eqx.error_if(
-            unravel(x),
-            regular & (scaled_norm(*residual(unravel(x))) > newton_tolerance(dtype)),
-            NOT_QUADRATIC,
-        )
+        v = unravel(x)
+        if check_promise:
+            v = eqx.error_if(
+                v,
+                regular & (scaled_norm(*residual(v)) > newton_tolerance(dtype)),
+                NOT_QUADRATIC,
+            )
         result = dfx.RESULTS.where(
             regular, dfx.RESULTS.successful, dfx.RESULTS.singular
         )
@@ -598,7 +652,7 @@ def velocity_is_explicit(lagrangian: AbstractLagrangian, p: P) -> bool:
     differentiable arithmetic: a separable Lagrangian ($M^{-1}p$), or one marked
     quadratic in $v$ with few enough degrees of freedom for a dense solve
     (`newton_is_dense`: one unrolled elimination)."""
-    if isinstance(lagrangian, AbstractSeparableLagrangian):
+    if constant_mass(lagrangian, p) is not None:
         return True
     n = sum(jnp.size(x) for x in jtu.tree_leaves(p))
     return isinstance(lagrangian, AbstractQuadraticLagrangian) and newton_is_dense(n)

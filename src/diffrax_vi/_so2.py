@@ -6,6 +6,11 @@ from jaxtyping import Array, Float
 from ._space import AbstractSpace
 
 
+def _matmul(a: Float[Array, "2 2"], b: Float[Array, "2 2"]) -> Float[Array, "2 2"]:
+    """`a @ b` written out (see `_so3.matmul`)."""
+    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+
+
 def _rot2(x: Array) -> Float[Array, "2 2"]:
     c, s = jnp.cos(x), jnp.sin(x)
     return jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])
@@ -21,17 +26,17 @@ class SO2(AbstractSpace):
     """
 
     def retract(self, q, x):
-        return q @ _rot2(x)
+        return _matmul(q, _rot2(x))
 
     def difference(self, q0, q1):
-        r = q0.T @ q1
+        r = _matmul(q0.T, q1)
         return jnp.arctan2(r[1, 0], r[0, 0])
 
     def tangent(self, q):
         return jnp.zeros((), q.dtype)
 
     def velocity(self, q, xi):
-        return q @ (xi * jnp.array([[0.0, -1.0], [1.0, 0.0]], q.dtype))
+        return _matmul(q, xi * jnp.array([[0.0, -1.0], [1.0, 0.0]], q.dtype))
 
     def pull(self, x, w):
         return w

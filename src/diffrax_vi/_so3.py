@@ -1,5 +1,8 @@
 """The rotation group SO(3), as a configuration space."""
 
+from typing import Literal
+
+import equinox as eqx
 import jax.numpy as jnp
 import jaxlie
 from jaxtyping import Array, Float
@@ -27,8 +30,82 @@ def vee(skew: Float[Array, "3 3"]) -> Float[Array, " 3"]:
     )
 
 
-def _exp3(x: Float[Array, " 3"]) -> Float[Array, "3 3"]:
+def matmul(a: Float[Array, "3 3"], b: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
+    """`a @ b` as elementwise products and a sum: a `dot_general` of small matrices
+    can become a custom fusion that keeps XLA from compiling a loop whole
+    (`diagnostics.loop_breakers`)."""
+    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+
+
+def matvec(a: Float[Array, "3 3"], x: Float[Array, " 3"]) -> Float[Array, " 3"]:
+    """`a @ x`, written out as `matmul` is."""
+    return jnp.sum(a * x[None, :], axis=1)
+
+
+def rmatvec(a: Float[Array, "3 3"], x: Float[Array, " 3"]) -> Float[Array, " 3"]:
+    """`a.T @ x`, written out as `matmul` is."""
+    return jnp.sum(a * x[:, None], axis=0)
+
+
+def _exp(x: Float[Array, " 3"]) -> Float[Array, "3 3"]:
     return jaxlie.SO3.exp(x).as_matrix()
+
+
+def _log(F: Float[Array, "3 3"]) -> Float[Array, " 3"]:
+    return jaxlie.SO3.from_matrix(F).log()
+
+
+def _exp_pull(x: Float[Array, " 3"], w: Float[Array, " 3"]) -> Float[Array, " 3"]:
+    # d tau^R_x is the left Jacobian J(x) = I + a x^ + b x^2 of SO(3)
+    # (D exp(x)[y] exp(x)^T = hat(J(x) y)), and J(x)^T = J(-x). Below |x| = 1e-2
+    # the series, whose next terms are below 1e-17; 1 - cos t as 2 sin^2(t/2)
+    # so that nothing cancels above.
+    t2 = jnp.sum(x**2)
+    small = t2 < 1e-4
+    safe = jnp.where(small, jnp.ones_like(t2), t2)
+    t = jnp.sqrt(safe)
+    a = jnp.where(small, 0.5 - t2 / 24 + t2**2 / 720, 2 * jnp.sin(0.5 * t) ** 2 / safe)
+    b = jnp.where(small, 1 / 6 - t2 / 120 + t2**2 / 5040, (t - jnp.sin(t)) / (safe * t))
+    xw = jnp.cross(x, w)
+    return w - a * xw + b * jnp.cross(x, xw)
+
+
+def _exp_transport(x: Float[Array, " 3"], w: Float[Array, " 3"]) -> Float[Array, " 3"]:
+    return rmatvec(_exp(x), w)
+
+
+def cayley(x: Float[Array, " 3"]) -> Float[Array, "3 3"]:
+    r"""$	au(x) = (I - \hat x/2)^{-1}(I + \hat x/2) = I + rac{4}{4 + |x|^2}
+    (\hat x + 	frac12\hat x^2)$, the Cayley map, rational in $x$."""
+    c = 4 / (4 + jnp.sum(x**2))
+    x_hat = hat(x)
+    return jnp.eye(3, dtype=x.dtype) + c * (x_hat + 0.5 * matmul(x_hat, x_hat))
+
+
+def _cayley_log(F: Float[Array, "3 3"]) -> Float[Array, " 3"]:
+    # tau^{-1}(F) = 2 vee(F - F^T) / (1 + tr F), with `vee` of the skew part.
+    return 4 * vee(F) / (1 + F[0, 0] + F[1, 1] + F[2, 2])
+
+
+def _cayley_pull(x: Float[Array, " 3"], w: Float[Array, " 3"]) -> Float[Array, " 3"]:
+    # d tau^R_x y = (I - x^/2)^{-1} y^ (I + x^/2)^{-1} = hat(4 (I + x^/2) y /
+    # (4 + |x|^2)), whose transpose is taken here.
+    return 4 / (4 + jnp.sum(x**2)) * (w - 0.5 * jnp.cross(x, w))
+
+
+def _cayley_transport(
+    x: Float[Array, " 3"], w: Float[Array, " 3"]
+) -> Float[Array, " 3"]:
+    # tau(x)^T w, with hat(x)^T = -hat(x).
+    xw = jnp.cross(x, w)
+    return w + 4 / (4 + jnp.sum(x**2)) * (0.5 * jnp.cross(x, xw) - xw)
+
+
+# Each retraction: (tau, its inverse near the identity, (d tau^R_x)^T, Ad*_tau(x)).
+_RETRACTIONS = {
+    "exp": (_exp, _log, _exp_pull, _exp_transport),
+    "cayley": (cayley, _cayley_log, _cayley_pull, _cayley_transport),
+}
 
 
 class SO3(AbstractSpace):
@@ -37,42 +114,61 @@ class SO3(AbstractSpace):
     The position is a rotation matrix `R` of shape `(3, 3)`, the velocity the body
     angular velocity $\Omega$ (shape `(3,)`) with $\dot R = R\hat\Omega$, the momentum
     the body angular momentum $\Pi = \partial L/\partial\Omega$. A step moves
-    $R \mapsto R\exp(\hat x)$ (jaxlie's exponential), so `R` stays a rotation to
-    round-off. $\mathrm{Ad}_R = R$ and $\mathrm{ad}^*_\Omega\Pi = \Pi \times \Omega$.
+    $R \mapsto R\,\tau(x)$, so `R` stays a rotation to round-off, with $\tau$ the
+    exponential map (jaxlie's; the default) or the Cayley map
+    $\tau(x) = (I - \hat x/2)^{-1}(I + \hat x/2)$ (Bou-Rabee & Marsden (2009)),
+    which is rational in $x$: no sine or cosine, and a cheaper derivative. Both are
+    second-order accurate retractions, so a solver keeps its order with either.
+    $\mathrm{Ad}_R = R$ and $\mathrm{ad}^*_\Omega\Pi = \Pi \times \Omega$.
+
+    Small products are written as sums (`matmul`), so that no step's compiled loop
+    holds a matrix-product kernel (`diagnostics.loop_breakers`).
+
+    **Arguments:**
+
+    - `retraction`: `"exp"` (the default) or `"cayley"`.
+
+    ??? cite "Reference"
+
+        ```bibtex
+        @article{bourabee2009hamilton,
+            title={Hamilton--{P}ontryagin integrators on {L}ie groups part {I}:
+                   introduction and structure-preserving properties},
+            author={Bou-Rabee, Nawaf and Marsden, Jerrold E.},
+            journal={Foundations of Computational Mathematics},
+            volume={9},
+            number={2},
+            pages={197--219},
+            year={2009},
+        }
+        ```
     """
 
+    retraction: Literal["exp", "cayley"] = eqx.field(static=True, default="exp")
+
+    def __check_init__(self):
+        if self.retraction not in _RETRACTIONS:
+            raise ValueError(
+                f"SO3(retraction=...) takes 'exp' or 'cayley'; got {self.retraction!r}."
+            )
+
     def retract(self, q, x):
-        return q @ _exp3(x)
+        return matmul(q, _RETRACTIONS[self.retraction][0](x))
 
     def difference(self, q0, q1):
-        return jaxlie.SO3.from_matrix(q0.T @ q1).log()
+        return _RETRACTIONS[self.retraction][1](matmul(q0.T, q1))
 
     def tangent(self, q):
         return jnp.zeros(q.shape[:-1], q.dtype)
 
     def velocity(self, q, xi):
-        return q @ hat(xi)
+        return matmul(q, hat(xi))
 
     def pull(self, x, w):
-        # d tau^R_x is the left Jacobian J(x) = I + a x^ + b x^2 of SO(3)
-        # (D exp(x)[y] exp(x)^T = hat(J(x) y)), and J(x)^T = J(-x). Below |x| = 1e-2
-        # the series, whose next terms are below 1e-17; 1 - cos t as 2 sin^2(t/2)
-        # so that nothing cancels above.
-        t2 = jnp.sum(x**2)
-        small = t2 < 1e-4
-        safe = jnp.where(small, jnp.ones_like(t2), t2)
-        t = jnp.sqrt(safe)
-        a = jnp.where(
-            small, 0.5 - t2 / 24 + t2**2 / 720, 2 * jnp.sin(0.5 * t) ** 2 / safe
-        )
-        b = jnp.where(
-            small, 1 / 6 - t2 / 120 + t2**2 / 5040, (t - jnp.sin(t)) / (safe * t)
-        )
-        xw = jnp.cross(x, w)
-        return w - a * xw + b * jnp.cross(x, xw)
+        return _RETRACTIONS[self.retraction][2](x, w)
 
     def transport(self, x, w):
-        return _exp3(x).T @ w
+        return _RETRACTIONS[self.retraction][3](x, w)
 
     def coadjoint(self, xi, mu):
         return jnp.cross(mu, xi)

@@ -12,6 +12,7 @@ from ._custom_types import Args, RealScalarLike
 from ._force import applied_force, depends_on_velocity
 from ._lagrangian import (
     AbstractLagrangian,
+    AbstractRigidBodyLagrangian,
     AbstractSeparableLagrangian,
     as_lagrangian,
     broadcast_mass,
@@ -54,8 +55,8 @@ SINGULAR_MASS = (
 
 def mass_settles_velocity(lagrangian: AbstractLagrangian) -> bool:
     """Whether the Legendre map is settled for every state of a solve by one check
-    of the Lagrangian, made here: a separable Lagrangian whose mass is concrete and
-    regular.
+    of the Lagrangian, made here: a separable Lagrangian whose mass, or a rigid body
+    whose inertia, is concrete and regular.
 
     Its velocity $M^{-1}p$ fails only for a singular mass, fixed for the solve. A
     check in every vector field would put a host callback in XLA's time-stepping
@@ -64,9 +65,12 @@ def mass_settles_velocity(lagrangian: AbstractLagrangian) -> bool:
     the term is built (one being fitted inside `jax.jit`), or a singular one, keeps
     the check in every vector field, which reports it.
     """
-    if not isinstance(lagrangian, AbstractSeparableLagrangian):
+    if isinstance(lagrangian, AbstractSeparableLagrangian):
+        mass = lagrangian.mass
+    elif isinstance(lagrangian, AbstractRigidBodyLagrangian):
+        mass = lagrangian.inertia
+    else:
         return False
-    mass = lagrangian.mass
     if any(isinstance(m, jax.core.Tracer) for m in jtu.tree_leaves(mass)):
         return False
     with jax.ensure_compile_time_eval():

@@ -8,6 +8,7 @@ from .composition import (
     CompositionScheme as CompositionScheme,
 )
 from .implicit import AbstractImplicitVI as AbstractImplicitVI
+from .lgvi import LGVI as LGVI
 from .linearized import LinearizedVI as LinearizedVI
 from .midpoint import MidpointVI as MidpointVI
 from .stormer_verlet import StormerVerlet as StormerVerlet

@@ -255,8 +255,10 @@ def without_force(step: StepInputs) -> StepInputs:
 class MethodStep(eqx.Module):
     """What a method's step produces: the increments of the state, a velocity of the
     step (the guess for the Legendre inversions of the dense output), the method's new
-    state, whether the step succeeded, and, for a term with an applied force, the
-    work of the method's discrete forces over the step (`None` without one)."""
+    state, whether the step succeeded, for a term with an applied force the work of
+    the method's discrete forces over the step (`None` without one), and the space
+    whose retraction moves the position by `dq`, where the method has its own
+    (`None`: the Lagrangian's)."""
 
     dq: Q
     dp: P
@@ -264,6 +266,7 @@ class MethodStep(eqx.Module):
     state: PyTree
     result: dfx.RESULTS
     work: Array | None = None
+    space: PyTree | None = None
 
 
 class VIState(eqx.Module):
@@ -406,7 +409,7 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
             terms, t0, t1, y0, args, compensation, substep, type(self).__name__
         )
         out = self.method_step(step, solver_state.method, made_jump)
-        space = step.term.lagrangian.space
+        space = step.term.lagrangian.space if out.space is None else out.space
         y1, compensation = advance(space, y0, (out.dq, out.dp), compensation)
         y1, result = step_result(out.result, y1)
         dense_info = hermite_dense_info(step, y0, y1, out.v)

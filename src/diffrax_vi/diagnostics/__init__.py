@@ -9,6 +9,10 @@ from ._forms import (
     tangent_discrete_lagrangian as tangent_discrete_lagrangian,
     tangent_symplectic_form as tangent_symplectic_form,
 )
+from ._loops import (
+    compiled_loop_breakers as compiled_loop_breakers,
+    loop_breakers as loop_breakers,
+)
 from ._stability import (
     oscillator_step_matrix as oscillator_step_matrix,
     spectral_radius as spectral_radius,

@@ -4,13 +4,13 @@ r"""Rigid bodies on SO(3): the attitude `R` a rotation matrix, the state
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._lagrangian import AbstractLagrangian
-from .._so3 import SO3
+from .._lagrangian import AbstractLagrangian, AbstractRigidBodyLagrangian
+from .._so3 import matmul, matvec, rmatvec, SO3
 from .._space import Euclidean
 from ._scene import check_positive, Scene
 
 
-class RigidBodyLagrangian(AbstractLagrangian):
+class RigidBodyLagrangian(AbstractRigidBodyLagrangian):
     r"""$L(R, \Omega) = \tfrac12\Omega^\top J\Omega - m g\,e_3\cdot R\chi$: a rigid body
     with principal moments of inertia $J$ (diagonal), in uniform gravity acting at the
     centre of mass $\chi$ (body frame; zero for a free body)."""
@@ -18,11 +18,9 @@ class RigidBodyLagrangian(AbstractLagrangian):
     inertia: Float[Array, " 3"]
     centre: Float[Array, " 3"]
     weight: Float[Array, ""]
-    space = SO3()
 
-    def __call__(self, t, R, omega, args):
-        kinetic = 0.5 * jnp.sum(self.inertia * omega**2)
-        return kinetic - self.weight * (R @ self.centre)[2]
+    def potential(self, t, R, args):
+        return self.weight * jnp.sum(R[2] * self.centre)
 
 
 def casimir(t, y, args) -> Array:
@@ -33,12 +31,12 @@ def casimir(t, y, args) -> Array:
 def orthogonality(t, y, args) -> Array:
     r"""$\|R^\top R - I\|_{\max}$: zero on SO(3)."""
     R = y[0]
-    return jnp.max(jnp.abs(R.T @ R - jnp.eye(3, dtype=R.dtype)))
+    return jnp.max(jnp.abs(matmul(R.T, R) - jnp.eye(3, dtype=R.dtype)))
 
 
 def spatial_momentum(t, y, args) -> Array:
     r"""The spatial angular momentum $R\Pi$."""
-    return y[0] @ y[1]
+    return matvec(y[0], y[1])
 
 
 def free_rigid_body(
@@ -104,7 +102,7 @@ def heavy_top(
 def vertical_momentum(t, y, args) -> Array:
     r"""$e_3\cdot R\Pi$, the spatial angular momentum about the vertical: conserved
     when gravity is the only force, as rotations about the vertical are a symmetry."""
-    return (y[0] @ y[1])[2]
+    return jnp.sum(y[0][2] * y[1])
 
 
 def pendulum_3d(
@@ -159,7 +157,7 @@ class SatelliteLagrangian(AbstractLagrangian):
         (x, R), (xdot, omega) = q, v
         r2 = jnp.sum(x**2)
         r = jnp.sqrt(r2)
-        body_direction = R.T @ x / r
+        body_direction = rmatvec(R, x) / r
         gradient = (
             0.5
             * self.mu
@@ -176,7 +174,7 @@ def total_angular_momentum(t, y, args) -> Array:
     r"""$x \times p_x + R\Pi$: conserved, as rotating orbit and attitude together is a
     symmetry."""
     (x, R), (p, pi) = y
-    return jnp.cross(x, p) + R @ pi
+    return jnp.cross(x, p) + matvec(R, pi)
 
 
 def satellite(

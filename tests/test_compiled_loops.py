@@ -1,0 +1,68 @@
+"""The structure of the compiled program: every scene's default solves compile their
+time-stepping and Newton loops with no custom call and no custom fusion, which on CPU
+would break each loop into separately dispatched kernels (a rigid-body step ran at a
+hundred times its arithmetic that way). A structural test, not a timed one."""
+
+import diffrax as dfx
+import diffrax_vi as dvi
+import jax
+import pytest
+from diffrax_vi.diagnostics import compiled_loop_breakers, loop_breakers
+
+
+SOLVERS = {
+    "MidpointVI": dvi.MidpointVI,
+    "TrapezoidalVI": dvi.TrapezoidalVI,
+    "Tsit5": dfx.Tsit5,
+}
+
+
+def _solve(scene, solver):
+    term = dvi.terms_for(solver, scene.term())
+    h = scene.period / 50
+
+    def run(y0):
+        return dfx.diffeqsolve(
+            term,
+            solver,
+            0.0,
+            8 * h,
+            h,
+            y0,
+            args=scene.args,
+            saveat=dfx.SaveAt(t1=True),
+            max_steps=8,
+        ).ys
+
+    return run
+
+
+# A Runge-Kutta solver on a term whose velocity map can fail at a state (a general
+# Lagrangian, a constraint) keeps its documented per-evaluation check, a host
+# callback, and nothing else: the term's `mass_checked` says which terms.
+CASES = [(scene, solver) for scene in dvi.scenes.SCENES for solver in SOLVERS] + [
+    (scene, "LGVI") for scene in ("free_rigid_body", "heavy_top", "pendulum_3d")
+]
+
+
+@pytest.mark.parametrize("scene,solver", CASES)
+def test_no_loop_is_broken_into_kernels(scene, solver):
+    scene = dvi.scenes.SCENES[scene]()
+    make = dvi.LGVI if solver == "LGVI" else SOLVERS[solver]
+    breakers = compiled_loop_breakers(_solve(scene, make()), scene.y0)
+    if solver == "Tsit5" and not scene.term().mass_checked:
+        assert breakers and all("python_cpu_callback" in b for b in breakers)
+    else:
+        assert breakers == []
+
+
+def test_the_check_finds_a_small_matrix_product_in_a_loop():
+    # A batched 3 x 9 product: what a Jacobian makes of a small `R @ x`.
+    def loop(a, b):
+        body = lambda c, _: (jax.numpy.tanh(c @ b)[:, :3] + c, None)
+        return jax.lax.scan(body, a, None, length=4)[0]
+
+    a, b = jax.numpy.ones((3, 3)), jax.numpy.ones((3, 9))
+    found = compiled_loop_breakers(loop, a, b)
+    assert len(found) == 1 and "__ynn_fusion" in found[0]
+    assert loop_breakers(jax.jit(loop).lower(a, b[:, :3]).compile().as_text()) == []
