@@ -71,6 +71,9 @@ def methods_table() -> str:
         )
     )
     rows.append(
+        _row("LGVI()", dvi.LGVI(), "implicit (3 unknowns)", "1 torque (rigid bodies)")
+    )
+    rows.append(
         _row(
             "LinearizedVI(velocity=...)",
             dvi.LinearizedVI(),

@@ -1,4 +1,5 @@
-"""The newcomer's pages run as written: every Python block of Home and Getting started,
+"""The newcomer's pages run as written: every Python block of Home, Getting started and
+Rigid bodies and Lie groups,
 in order, as one script in a fresh process (as a user would paste them, without the
 test suite's JAX settings)."""
 
@@ -27,7 +28,7 @@ def _run(source: str, tmp_path: pathlib.Path, name: str):
     return done.stdout
 
 
-@pytest.mark.parametrize("page", ["index.md", "getting-started.md"])
+@pytest.mark.parametrize("page", ["index.md", "getting-started.md", "lie-groups.md"])
 def test_page_code_blocks_run(page, tmp_path):
     blocks = _PYTHON_BLOCK.findall((DOCS / page).read_text())
     assert blocks, f"{page} has no Python block"

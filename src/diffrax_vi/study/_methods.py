@@ -11,6 +11,7 @@ from .._adaptive import ReversibleController
 from .._solver import (
     Composition,
     GaussVPRK,
+    LGVI,
     LinearizedVI,
     LobattoVPRK,
     MidpointVI,
@@ -38,6 +39,8 @@ SOLVERS = {
     "MidpointVI-Yoshida4": lambda: Composition(MidpointVI(), "yoshida4"),
     "MidpointVI-KahanLi8": lambda: Composition(MidpointVI(), "kahan_li8"),
     "LinearizedVI": lambda: LinearizedVI(velocity="centered"),
+    # Rigid bodies with constant inertia (an AbstractRigidBodyLagrangian).
+    "LGVI": LGVI,
     "SemiImplicitEuler": dfx.SemiImplicitEuler,
     "Tsit5": dfx.Tsit5,
     "Dopri5": dfx.Dopri5,
