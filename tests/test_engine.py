@@ -75,6 +75,15 @@ def test_tableau_validation():
         dvi.GaussVPRK(25)
 
 
+def test_tableau_order_is_an_integer_not_a_boolean(as_a_user_runs_it):
+    fields = dict(a=LOBATTO2.a, a_bar=LOBATTO2.a_bar, b=LOBATTO2.b, c=LOBATTO2.c)
+    with pytest.raises(ValueError, match="positive int"):
+        dvi.VPRKTableau(**fields, order=True)
+    tableau = dvi.VPRKTableau(**fields, order=np.int64(2))
+    assert tableau.order == 2 and type(tableau.order) is int
+    assert tableau == LOBATTO2
+
+
 @pytest.mark.parametrize("s", [8, 12, 16, 24])
 def test_many_stage_tableaus_are_exact_to_round_off(s):
     # Built by quadrature of the Lagrange basis: the collocation conditions C(s) hold

@@ -397,6 +397,9 @@ def test_linearized_vi_on_alternating_steps_converges():
         (lambda: dvi.scenes.fpu(m=0), "at least 1"),
         (lambda: dvi.scenes.swing_up(controls=0), "at least 1"),
         (lambda: dvi.scenes.heavy_top(inertia=(1.0, 1.0, 0.0)), "inertia"),
+        # The spin is conserved only for J1 = J2, which the scene lists as conserved.
+        (lambda: dvi.scenes.heavy_top(inertia=(1.0, 2.0, 0.4)), "J1 = J2"),
+        (lambda: dvi.scenes.pendulum_3d(centre=(0.0, 0.0, 0.0)), "off the pivot"),
     ],
 )
 def test_scene_parameters_out_of_range_are_refused(make, match):
@@ -411,6 +414,8 @@ def test_cli_reads_integer_and_tuple_parameters_and_refuses_bad_ones():
     assert _scene("fpu", ["m=2"]).y0[0].shape == (4,)
     top = _scene("heavy_top", ["inertia=2,2,1"])
     np.testing.assert_array_equal(top.lagrangian.inertia, [2.0, 2.0, 1.0])
+    with pytest.raises(UsageError, match="off the pivot"):
+        _scene("pendulum_3d", ["centre=0,0,0"])
     for params, match in (
         (["n=8.5"], "not an integer"),
         (["displacement=nan"], "finite"),

@@ -221,8 +221,9 @@ def test_import_compiles_small_loops_whole_unless_opted_out():
     )
     zero = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=0"
     assert _small_loops(keep, XLA_FLAGS=zero) < plain
-    with pytest.raises(ValueError, match="non-negative integer"):
-        dvi.compile_small_loops_whole(-1)
+    for bad in (-1, True):
+        with pytest.raises(ValueError, match="non-negative integer"):
+            dvi.compile_small_loops_whole(bad)
 
 
 def test_python_dash_m_runs_the_command_line():

@@ -85,7 +85,11 @@ def compile_small_loops_whole(threshold_bytes: int = SMALL_LOOP_BYTES) -> bool:
     would then be silently ignored.
     """
     global _flags_before
-    if not isinstance(threshold_bytes, int) or threshold_bytes < 0:
+    if (
+        isinstance(threshold_bytes, bool)
+        or not isinstance(threshold_bytes, int)
+        or threshold_bytes < 0
+    ):
         raise ValueError(
             f"threshold_bytes must be a non-negative integer; got {threshold_bytes!r}."
         )

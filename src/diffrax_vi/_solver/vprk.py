@@ -104,10 +104,15 @@ class VPRKTableau:
             )
         if self.c.shape != (s,):
             raise ValueError(f"VPRK tableau: c has shape {self.c.shape}, not ({s},).")
-        if not isinstance(self.order, int) or self.order < 1:
+        if (
+            isinstance(self.order, bool)
+            or not isinstance(self.order, int | np.integer)
+            or self.order < 1
+        ):
             raise ValueError(
                 f"VPRK tableau: order must be a positive int, got {self.order!r}."
             )
+        object.__setattr__(self, "order", int(self.order))
         if not np.allclose(self.a.sum(axis=1), self.c, atol=COEFFICIENT_ATOL):
             raise ValueError("VPRK tableau: the nodes c must be the row sums of a.")
         if not np.isclose(self.b.sum(), 1.0, atol=COEFFICIENT_ATOL):

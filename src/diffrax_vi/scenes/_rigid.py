@@ -80,6 +80,14 @@ def heavy_top(
     angular momentum $e_3\cdot R\Pi$ (rotations about the vertical) and the spin $\Pi_3$
     (rotations about the axis)."""
     check_positive("heavy_top", inertia=inertia, spin=spin)
+    if inertia[0] != inertia[1]:
+        # The spin Pi_3 is conserved only for a symmetric body: with J1 != J2 the
+        # study would table real physics as every solver's error.
+        raise ValueError(
+            f"heavy_top(inertia=...) is the Lagrange top, a symmetric body: it needs "
+            f"J1 = J2, whose spin Pi_3 it lists as conserved; got {inertia!r}. For "
+            "an asymmetric body on a pivot use pendulum_3d(inertia=..., centre=...)."
+        )
     lagrangian = RigidBodyLagrangian(
         jnp.asarray(inertia, float), jnp.array([0.0, 0.0, 1.0]), jnp.asarray(weight)
     )
@@ -121,6 +129,12 @@ def pendulum_3d(
     period is that of small swings about the first principal axis,
     $2\pi\sqrt{J_1/(m g|\chi|)}$."""
     check_positive("pendulum_3d", inertia=inertia, weight=weight)
+    if not any(c != 0 for c in centre):
+        raise ValueError(
+            "pendulum_3d(centre=...) needs a centre of mass off the pivot (its "
+            f"period is that of small swings about it); got {centre!r}. A body "
+            "supported at its centre of mass is free_rigid_body."
+        )
     lagrangian = RigidBodyLagrangian(
         jnp.asarray(inertia, float), jnp.asarray(centre, float), jnp.asarray(weight)
     )
