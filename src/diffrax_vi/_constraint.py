@@ -31,7 +31,12 @@ from ._lagrangian import (
     momentum,
     velocity_is_explicit,
 )
-from ._linear import unrolled_lu_solve
+from ._linear import (
+    pivot_ratio,
+    unrolled_lu_apply,
+    unrolled_lu_factor,
+    unrolled_lu_solve,
+)
 from ._misc import all_finite, split_state, state_dtype
 from ._root_finders import Newton, solve
 from ._tolerance import (
@@ -342,11 +347,6 @@ def multiplier_force(
     mixed = jax.jvp(lambda t_, q_: dl_dv(t_, q_, v), (t, q), (one, v))[1]
     jacobian = constraint_jacobian(g, t, q, args)
     rhs = jnp.concatenate([jacobian.T, (_flat(force) - mixed)[:, None]], axis=1)
-    operator = lx.MatrixLinearOperator(hessian, lx.symmetric_tag)
-    solved = jax.vmap(lambda b: lx.linear_solve(operator, b, lx.LU(), throw=False))(
-        rhs.T
-    )
-    w_gt, w_f = solved.value[:-1].T, solved.value[-1]
 
     def rate(t_, q_):
         return jax.jvp(
@@ -354,10 +354,36 @@ def multiplier_force(
         )[1]
 
     curvature = jax.jvp(rate, (t, q), (one, v))[1]
-    reduced = lx.MatrixLinearOperator(jacobian @ w_gt)
-    lam = lx.linear_solve(reduced, jacobian @ w_f + curvature, lx.LU(), throw=False)
-    ok = (lam.result == lx.RESULTS.successful) & jnp.all(
-        solved.result == lx.RESULTS.successful
-    )
+    n, m = hessian.shape[0], jacobian.shape[0]
+    if newton_is_dense(n) and newton_is_dense(m):
+        # Unrolled eliminations, not LAPACK's: this runs in a Runge-Kutta solver's
+        # vector field, inside its time-stepping loop, which a LAPACK call would
+        # break into kernels (`diagnostics.loop_breakers`).
+        lu, perm = unrolled_lu_factor(hessian)
+        solved = jax.vmap(lambda b: unrolled_lu_apply(lu, perm, b))(rhs.T)
+        w_gt, w_f = solved[:-1].T, solved[-1]
+        lam, reduced_ratio = unrolled_lu_solve(
+            jacobian @ w_gt, jacobian @ w_f + curvature
+        )
+        # As lineax's LU: a solution that is not finite (at a singular
+        # configuration, G W G^T loses rank) is a failed solve.
+        ok = (
+            ~(pivot_ratio(lu) <= singular_threshold(n, dtype))
+            & ~(reduced_ratio <= singular_threshold(m, dtype))
+            & all_finite((solved, lam))
+        )
+    else:
+        operator = lx.MatrixLinearOperator(hessian, lx.symmetric_tag)
+        solve_w = lambda b: lx.linear_solve(operator, b, lx.LU(), throw=False)
+        solved = jax.vmap(solve_w)(rhs.T)
+        w_gt, w_f = solved.value[:-1].T, solved.value[-1]
+        reduced = lx.MatrixLinearOperator(jacobian @ w_gt)
+        solution = lx.linear_solve(
+            reduced, jacobian @ w_f + curvature, lx.LU(), throw=False
+        )
+        lam = solution.value
+        ok = (solution.result == lx.RESULTS.successful) & jnp.all(
+            solved.result == lx.RESULTS.successful
+        )
     result = dfx.RESULTS.where(ok, dfx.RESULTS.successful, dfx.RESULTS.singular)
-    return jax.flatten_util.ravel_pytree(q)[1](-jacobian.T @ lam.value), result
+    return jax.flatten_util.ravel_pytree(q)[1](-jacobian.T @ lam), result
