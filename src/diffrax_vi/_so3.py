@@ -75,8 +75,8 @@ def _exp_transport(x: Float[Array, " 3"], w: Float[Array, " 3"]) -> Float[Array,
 
 
 def cayley(x: Float[Array, " 3"]) -> Float[Array, "3 3"]:
-    r"""$	au(x) = (I - \hat x/2)^{-1}(I + \hat x/2) = I + rac{4}{4 + |x|^2}
-    (\hat x + 	frac12\hat x^2)$, the Cayley map, rational in $x$."""
+    r"""$\tau(x) = (I - \hat x/2)^{-1}(I + \hat x/2) = I + \frac{4}{4 + |x|^2}
+    (\hat x + \tfrac12\hat x^2)$, the Cayley map, rational in $x$."""
     c = 4 / (4 + jnp.sum(x**2))
     x_hat = hat(x)
     return jnp.eye(3, dtype=x.dtype) + c * (x_hat + 0.5 * matmul(x_hat, x_hat))
