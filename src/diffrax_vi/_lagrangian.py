@@ -152,7 +152,7 @@ class AbstractRigidBodyLagrangian(AbstractQuadraticLagrangian):
 
     @abc.abstractmethod
     def potential(self, t: RealScalarLike, R: Q, args: Args) -> Scalar:
-        """The potential energy $V(t, R, \text{args})$, a scalar."""
+        """The potential energy $V(t, R, \\text{args})$, a scalar."""
 
     def __call__(self, t: RealScalarLike, q: Q, v: V, args: Args) -> Scalar:
         return 0.5 * jnp.sum(self.inertia * v**2) - self.potential(t, q, args)
