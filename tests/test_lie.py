@@ -56,6 +56,18 @@ def _final(scene, solver, t1, dt, saveat=None, max_steps=4096):
     return sol
 
 
+def _errors(scene, solver, t1, steps):
+    """The largest error in `(R, Pi)` at `t1` against scipy, for each number of
+    steps."""
+    R_ref, pi_ref = _euler_reference(scene, t1)
+    errors = []
+    for n in steps:
+        sol = _final(scene, solver, t1, t1 / n)
+        R, pi = np.asarray(sol.ys[0][-1]), np.asarray(sol.ys[1][-1])
+        errors.append(max(np.max(np.abs(R - R_ref)), np.max(np.abs(pi - pi_ref))))
+    return errors
+
+
 @pytest.mark.parametrize(
     "solver,order,steps",
     [
@@ -74,13 +86,7 @@ def test_order_on_the_heavy_top_and_the_free_body(make, t1, solver, order, steps
     # One RigidBodyLagrangian class with array parameters, and times as arrays: the
     # free body reuses the heavy top's compiled solves. Its slower motion takes a
     # longer horizon to keep the eighth order's errors above round-off.
-    scene = make()
-    R_ref, pi_ref = _euler_reference(scene, t1)
-    errors = []
-    for n in steps:
-        sol = _final(scene, solver, t1, t1 / n)
-        R, pi = np.asarray(sol.ys[0][-1]), np.asarray(sol.ys[1][-1])
-        errors.append(max(np.max(np.abs(R - R_ref)), np.max(np.abs(pi - pi_ref))))
+    errors = _errors(make(), solver, t1, steps)
     slope = -np.polyfit(np.log(steps), np.log(errors), 1)[0]
     assert abs(slope - order) < 0.3, (slope, errors)
 

@@ -11,17 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from .test_lie import _euler_reference, _final
-
-
-def _errors(scene, solver, t1, steps):
-    R_ref, pi_ref = _euler_reference(scene, t1)
-    errors = []
-    for n in steps:
-        sol = _final(scene, solver, t1, t1 / n)
-        R, pi = np.asarray(sol.ys[0][-1]), np.asarray(sol.ys[1][-1])
-        errors.append(max(np.max(np.abs(R - R_ref)), np.max(np.abs(pi - pi_ref))))
-    return errors
+from .test_lie import _errors, _final
 
 
 def _slope(steps, errors):

@@ -3,12 +3,8 @@
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._so3 import matmul
 from ._space import AbstractSpace
-
-
-def _matmul(a: Float[Array, "2 2"], b: Float[Array, "2 2"]) -> Float[Array, "2 2"]:
-    """`a @ b` written out (see `_so3.matmul`)."""
-    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
 
 
 def _rot2(x: Array) -> Float[Array, "2 2"]:
@@ -26,17 +22,17 @@ class SO2(AbstractSpace):
     """
 
     def retract(self, q, x):
-        return _matmul(q, _rot2(x))
+        return matmul(q, _rot2(x))
 
     def difference(self, q0, q1):
-        r = _matmul(q0.T, q1)
+        r = matmul(q0.T, q1)
         return jnp.arctan2(r[1, 0], r[0, 0])
 
     def tangent(self, q):
         return jnp.zeros((), q.dtype)
 
     def velocity(self, q, xi):
-        return _matmul(q, xi * jnp.array([[0.0, -1.0], [1.0, 0.0]], q.dtype))
+        return matmul(q, xi * jnp.array([[0.0, -1.0], [1.0, 0.0]], q.dtype))
 
     def pull(self, x, w):
         return w

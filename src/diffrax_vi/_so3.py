@@ -30,7 +30,7 @@ def vee(skew: Float[Array, "3 3"]) -> Float[Array, " 3"]:
     )
 
 
-def matmul(a: Float[Array, "3 3"], b: Float[Array, "3 3"]) -> Float[Array, "3 3"]:
+def matmul(a: Float[Array, "n k"], b: Float[Array, "k m"]) -> Float[Array, "n m"]:
     """`a @ b` as elementwise products and a sum: a `dot_general` of small matrices
     can become a custom fusion that keeps XLA from compiling a loop whole
     (`diagnostics.loop_breakers`)."""
