@@ -1,4 +1,6 @@
 import gc
+import os
+import tempfile
 
 import jax
 import numpy as np
@@ -8,6 +10,9 @@ import pytest
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
+# The command line keeps compiled programs in $XDG_CACHE_HOME: the suite's runs of
+# it write into a folder of their own, not the user's cache.
+os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="diffrax-vi-test-cache-")
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -1,4 +1,5 @@
 import csv
+import dataclasses
 import json
 import os
 import re
@@ -225,7 +226,7 @@ def test_cli_end_to_end(tmp_path, capsys):
         (["drift", "--periods", "0.15", "--steps-per-period", "10"], "whole number"),
         (["drift", "--solvers", ","], "--solvers names no solver"),
         (["drift", "--solvers", "MidpointVI,RK99"], "Unknown solver 'RK99'"),
-        (["drift", "--scene", "blackhole"], "unknown scene"),
+        (["drift", "--scene", "blackhole"], "invalid choice: 'blackhole'"),
         (["drift", "--solvers", "MidpointVI+PID"], "or MidpointVI+Adaptive"),
         (["drift", "--solvers", "Tsit5+Adaptive"], "need a symmetric one-step"),
         (
@@ -304,6 +305,149 @@ def test_cli_help_and_study_errors(capsys):
         assert main([command, "--help"]) == 0
         assert option in capsys.readouterr().out
     assert main([]) == 2
+
+
+def test_cli_help_and_bad_options_answer_without_jax():
+    """`--help` (which lists the scenes) and an option argparse refuses answer from
+    the entry point alone: JAX is never imported."""
+    code = textwrap.dedent(
+        """
+        import contextlib, io, sys
+        import _diffrax_vi_cli as cli
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            codes = [
+                cli.main(["drift", "--help"]),
+                cli.main(["drift", "--scene", "nope"]),
+                cli.main(["work-precision", "--rtols", "tight"]),
+            ]
+        assert codes == [0, 2, 2], codes
+        assert "free_rigid_body" in out.getvalue() and "--no-cache" in out.getvalue()
+        assert "invalid choice: 'nope'" in err.getvalue(), err.getvalue()
+        assert "jax" not in sys.modules
+        print("ok")
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=False
+    )
+    assert done.stdout.strip() == "ok", done.stderr
+
+
+def test_cli_scene_names_are_the_scenes():
+    from _diffrax_vi_cli import SCENE_NAMES
+
+    assert SCENE_NAMES == tuple(scenes.SCENES)
+
+
+@pytest.mark.parametrize("command", ["drift", "work-precision"])
+@pytest.mark.parametrize("name", list(scenes.SCENES))
+def test_every_scene_takes_its_default_methods(name, command):
+    """With no --solvers, a scene gets the methods it declares (like with like: a
+    Lie-group VI against Runge-Kutta on the same term), else the command's list;
+    every one of them takes the scene's terms."""
+    import argparse
+
+    from diffrax_vi.cli import _methods
+
+    scene = scenes.SCENES[name]()
+    args = argparse.Namespace(command=command, solvers=None)
+    methods = _methods(args, 1e-8, scene)
+    assert len(methods) >= 5
+    if isinstance(scene.lagrangian, dvi.AbstractRigidBodyLagrangian):
+        assert methods[0].name == "LGVI"
+    # Every scene compares a variational method with Runge-Kutta and an adaptive one.
+    assert any(isinstance(m.solver, dvi.AbstractVariationalSolver) for m in methods)
+    assert any(isinstance(m.solver, dfx.Tsit5) for m in methods)
+    assert any(not m.fixed for m in methods)
+
+
+def test_cli_names_solvers_a_scene_takes(capsys, tmp_path):
+    argv = ["drift", "--scene", "heavy_top", "--solvers", "StormerVerlet"]
+    assert main([*argv, "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert "--solvers" in err and "LGVI" in err and "MidpointVI" in err, err
+
+
+def test_default_save_intervals_divide_the_steps():
+    from diffrax_vi.study import check_drift
+
+    methods = [dvi.study.as_method("StormerVerlet")]
+    for periods, per_period, expected in [
+        (10, 20, 200),
+        (1000, 200, 1000),
+        (7, 11, 77),
+    ]:
+        assert check_drift(kepler(), methods, periods, per_period, None, "float64") == (
+            periods * per_period,
+            expected,
+        )
+    study = drift(kepler(), ["StormerVerlet"], periods=3, steps_per_period=7)
+    assert len(study.runs[0].ts) == 22
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [n for n, f in scenes.SCENES.items() if f().solvers])
+def test_every_scene_runs_with_no_flags(name, tmp_path, capsys):
+    """The scenes that declare their methods (the others run the main job's) run
+    as typed, only shorter; every method succeeds."""
+    argv = ["drift", "--scene", name, "--periods", "1", "--steps-per-period", "20"]
+    assert main([*argv, "--out", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "drift.json").read_text())["summary"]
+    assert [r["solver"] for r in rows] == list(scenes.SCENES[name]().solvers)
+    assert all(r["result"] == "successful" for r in rows), rows
+
+
+def test_cli_keeps_compiled_programs_in_the_user_cache(tmp_path, monkeypatch):
+    """Each command keeps its compilations in $XDG_CACHE_HOME/diffrax-vi/jax, and
+    leaves the process's JAX settings as they were; --no-cache writes nothing."""
+    import jax
+
+    small = ["--periods", "1", "--steps-per-period", "8", "--solvers", "Tsit5"]
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "off"))
+    assert main(["drift", *small, "--no-cache", "--out", str(tmp_path / "a")]) == 0
+    assert not (tmp_path / "off").exists()
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "on"))
+    assert (
+        main(["drift", *small, "--scene", "duffing", "--out", str(tmp_path / "b")]) == 0
+    )
+    assert any((tmp_path / "on" / "diffrax-vi" / "jax").iterdir())
+    assert jax.config.jax_compilation_cache_dir is None
+
+
+def test_verdict_weighs_every_invariant():
+    """The heavy top's numbers from a 1000-period study: Tsit5 has the lowest
+    energy error but leaves SO(3); the LGVI keeps every invariant, and the verdict
+    says so (the factors are ratios, the same in any units)."""
+    from diffrax_vi.study import DriftRun, DriftStudy
+
+    def run(name, energy, orthogonality, symplectic):
+        ts = np.linspace(0.0, 1.0, 11)
+        series = {
+            "energy": np.full(11, energy),
+            "spin": np.full(11, 1e-15),
+            "orthogonality": np.full(11, orthogonality),
+        }
+        return DriftRun(name, 100, 0.5, "successful", ts, series, symplectic)
+
+    runs = [run("LGVI", 5e-11, 9e-14, True), run("Tsit5", 1.2e-11, 1.6e-8, False)]
+    study = DriftStudy("heavy_top", 10, 10, "float64", 1, runs)
+    verdict = study.verdict()
+    assert "lowest errors on all 3 invariants together: LGVI (each within x4.2" in (
+        verdict
+    ), verdict
+    assert "lowest energy error: Tsit5 (1.2e-11 in 0.5 s), but its orthogonality " in (
+        verdict
+    ), verdict
+    # In other units (energies x1e6) the verdict is the same.
+    scaled = [
+        dataclasses.replace(r, errors=dict(r.errors, energy=r.errors["energy"] * 1e6))
+        for r in runs
+    ]
+    assert (
+        "together: LGVI"
+        in DriftStudy("heavy_top", 10, 10, "float64", 1, scaled).verdict()
+    )
 
 
 def test_adaptive_runs_and_failures_are_recorded():

@@ -27,6 +27,9 @@ from diffrax._term import (  # What `diffeqsolve` hands solvers instead of our t
     AdjointTerm,  # BacksolveAdjoint's backward solve.
     WrapTerm,  # Every solve.
 )
+from jax._src.compilation_cache import (  # The persistent cache, set up once.
+    reset_cache as reset_compilation_cache,
+)
 from jax._src.xla_bridge import backends_are_initialized  # XLA_FLAGS are read then.
 from jaxtyping import ArrayLike, Bool
 
@@ -38,6 +41,7 @@ __all__ = [
     "clip_to_end",
     "is_subsaveat",
     "nondiff_solver_controller_state",
+    "reset_compilation_cache",
     "only_transpose_ys",
     "save_y",
     "NoForwardingSolverMeta",

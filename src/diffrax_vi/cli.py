@@ -1,18 +1,21 @@
 """The `diffrax-vi` command line: `diffrax-vi drift`, `diffrax-vi work-precision`,
 `diffrax-vi seed`; also `python -m diffrax_vi ...`. `main(argv)` runs it from Python
-and returns the exit code."""
+and returns the exit code. The options are parsed in `_diffrax_vi_cli`, without
+JAX; this module runs the commands."""
 
 import argparse
+import contextlib
 import math
+import os
 import pathlib
 import sys
 
 import jax
+from _diffrax_vi_cli import DEFAULT_OUT, DEFAULT_SOLVERS, main as _main
+
+from ._private_api import reset_compilation_cache
 
 
-DEFAULT_SOLVERS = "MidpointVI,StormerVerlet,KahanLi8,Tsit5,Dopri8,Dopri8+PID"
-DEFAULT_OUT = "diffrax-vi-results"
-DTYPES = ("float64", "float32")
 # The files each command writes, removed from `--out` by `--force` before it writes.
 OUTPUTS = {
     "drift": ("drift.csv", "drift.json", "drift_*.png"),
@@ -23,51 +26,6 @@ OUTPUTS = {
 
 class UsageError(Exception):
     """A bad option: reported on one line with exit code 2, before any work."""
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):
-        # One line, not argparse's usage block: `prog: error: message`.
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
-def _number(kind, name: str, low: float, high: float = math.inf, strict=True):
-    """An argparse type: a finite `kind` in (low, high) (or [low, high))."""
-
-    def parse(text: str):
-        try:
-            x = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(
-                f"{name} must be {'an integer' if kind is int else 'a number'}, "
-                f"got {text!r}"
-            ) from None
-        inside = (x > low if strict else x >= low) and x < high
-        if not (math.isfinite(x) and inside):
-            bound = f"> {low:g}" if strict else f">= {low:g}"
-            above = "" if high == math.inf else f" and < {high:g}"
-            raise argparse.ArgumentTypeError(
-                f"{name} must be finite, {bound}{above}; got {text!r}"
-            )
-        return x
-
-    return parse
-
-
-def _list(item):
-    def parse(text: str):
-        values = [item(x.strip()) for x in text.split(",") if x.strip()]
-        if not values:
-            raise argparse.ArgumentTypeError(f"names no value: {text!r}")
-        return values
-
-    return parse
-
-
-POSITIVE = _number(float, "a horizon", 0.0)
-COUNT = _number(int, "a count", 0.0)
-RTOL = _number(float, "a tolerance", 0.0, 1.0)
-SPREAD = _number(float, "a spread", 0.0, strict=False)
 
 
 def _parameter_value(text: str, value: str, default):
@@ -121,10 +79,14 @@ def _scene(name: str, params: list[str] | None = None):
         raise UsageError(f"--param: {e}") from None
 
 
-def _methods(solvers: str, rtol: float, scene):
-    """The methods named, each checked to take the scene's Lagrangian."""
-    from .study import as_method
+def _methods(args: argparse.Namespace, rtol: float, scene):
+    """The methods `--solvers` names (by default those the scene declares, else the
+    command's own list), each checked to take the scene's Lagrangian."""
+    from .study import as_method, SOLVERS
 
+    solvers = args.solvers or ",".join(
+        scene.solvers or DEFAULT_SOLVERS[args.command].split(",")
+    )
     names = [s.strip() for s in solvers.split(",") if s.strip()]
     if not names:
         raise UsageError("--solvers names no solver.")
@@ -133,8 +95,20 @@ def _methods(solvers: str, rtol: float, scene):
         for method in methods:
             method.terms(scene)
     except ValueError as e:
-        raise UsageError(str(e)) from None
+        fits = [name for name in SOLVERS if _takes(as_method(name), scene)]
+        raise UsageError(
+            f"{e} Name others with --solvers; the scene {scene.name!r} takes "
+            f"{', '.join(fits)} (and the suffixes +PID, +Adaptive where they apply)."
+        ) from None
     return methods
+
+
+def _takes(method, scene) -> bool:
+    try:
+        method.terms(scene)
+    except ValueError:
+        return False
+    return True
 
 
 def _out(args: argparse.Namespace, scene: str) -> pathlib.Path:
@@ -194,7 +168,7 @@ def _drift(args: argparse.Namespace) -> int:
     from .study import check_drift, drift
 
     scene = _scene(args.scene, args.param)
-    methods = _methods(args.solvers, args.rtol, scene)
+    methods = _methods(args, args.rtol, scene)
     _study(
         check_drift,
         scene=scene,
@@ -232,7 +206,7 @@ def _work_precision(args: argparse.Namespace) -> int:
     from .study import check_work_precision, work_precision
 
     scene = _scene(args.scene, args.param)
-    methods = _methods(args.solvers, 1e-8, scene)
+    methods = _methods(args, 1e-8, scene)
     _study(
         check_work_precision,
         periods=args.periods,
@@ -259,135 +233,48 @@ def _seed(args: argparse.Namespace) -> int:
     return 0
 
 
-def _output(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--out",
-        default=None,
-        help=f"folder for tables and figures (default: a new folder in {DEFAULT_OUT}/"
-        " for each run); it must be empty unless --force",
-    )
-    parser.add_argument(
-        "--force",
-        action="store_true",
-        help="replace the results of this command already in --out",
-    )
+RUNS = {"drift": _drift, "work-precision": _work_precision, "seed": _seed}
 
 
-def _common(parser: argparse.ArgumentParser, solvers: str) -> None:
-    parser.add_argument("--scene", default="kepler", help="scene to integrate")
-    parser.add_argument(
-        "--param",
-        action="append",
-        default=[],
-        metavar="NAME=VALUE",
-        help="a parameter of the scene (repeatable), e.g. eccentricity=0.9 for kepler",
-    )
-    parser.add_argument(
-        "--solvers",
-        default=solvers,
-        help="comma-separated solver names; the suffix +PID steps an adaptive "
-        "Runge-Kutta solver with a PIDController (e.g. Tsit5+PID), +Adaptive a "
-        "symmetric one with reversible steps on the scene's monitor (e.g. "
-        "KahanLi8+Adaptive; --steps-per-period is then the mean)",
-    )
-    parser.add_argument("--dtype", choices=DTYPES, default="float64")
-    _output(parser)
+def cache_dir() -> pathlib.Path:
+    """Where the command line keeps JAX's persistent compilation cache:
+    `$XDG_CACHE_HOME/diffrax-vi/jax`, by default `~/.cache/diffrax-vi/jax`."""
+    root = os.environ.get("XDG_CACHE_HOME") or pathlib.Path.home() / ".cache"
+    return pathlib.Path(root) / "diffrax-vi" / "jax"
 
 
-def _parser() -> argparse.ArgumentParser:
-    parser = _Parser(
-        prog="diffrax-vi",
-        description="Variational integrators for diffrax: energy-drift studies.",
-    )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    formatter = argparse.ArgumentDefaultsHelpFormatter
+@contextlib.contextmanager
+def compilation_cache(enabled: bool = True):
+    """JAX's persistent compilation cache in [`diffrax_vi.cli.cache_dir`][] for
+    the duration of one command, every compilation kept, so that a repeated study
+    skips XLA's compilation; the process's settings are restored afterwards (the
+    library never turns the cache on for a user's own code). A cache the user set
+    up (`jax_compilation_cache_dir`) is used as it is."""
+    if not enabled or jax.config.jax_compilation_cache_dir is not None:
+        yield
+        return
+    min_time = jax.config.jax_persistent_cache_min_compile_time_secs
+    reset_compilation_cache()
+    jax.config.update("jax_compilation_cache_dir", str(cache_dir()))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_compilation_cache_dir", None)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", min_time)
+        reset_compilation_cache()
 
-    drift = sub.add_parser(
-        "drift",
-        help="energy drift of several solvers at equal steps (the main job)",
-        description=(
-            "Integrate one scene with several solvers at the same fixed step and "
-            "number of steps; print the largest error of each conserved quantity and "
-            "the wall time, and write drift.csv, drift.json and PNG figures."
-        ),
-        formatter_class=formatter,
-    )
-    _common(drift, DEFAULT_SOLVERS)
-    drift.add_argument(
-        "--periods",
-        type=POSITIVE,
-        default=1000,
-        help="horizon, periods (periods x steps-per-period must be a whole number)",
-    )
-    drift.add_argument(
-        "--steps-per-period",
-        type=COUNT,
-        default=200,
-        help="fixed steps per period (the mean for +Adaptive solvers)",
-    )
-    drift.add_argument(
-        "--save",
-        type=COUNT,
-        default=1000,
-        help="number of intervals to record the largest errors over",
-    )
-    drift.add_argument(
-        "--rtol", type=RTOL, default=1e-8, help="tolerance of +PID solvers"
-    )
-    drift.add_argument(
-        "--ensemble",
-        type=COUNT,
-        default=None,
-        help="run this many nearby initial states at once (vmapped, sharded over "
-        "devices) and report the worst",
-    )
-    drift.add_argument(
-        "--spread", type=SPREAD, default=1e-3, help="relative spread of the ensemble"
-    )
-    drift.add_argument(
-        "--progress", action="store_true", help="show a progress bar for each solve"
-    )
-    drift.set_defaults(run=_drift)
 
-    wp = sub.add_parser(
-        "work-precision",
-        help="wall time against energy error and global error",
-        description=(
-            "Run each fixed-step or +Adaptive solver at several (mean) steps per "
-            "period, and each +PID solver at several tolerances, over the same "
-            "horizon; write "
-            "work_precision.csv, .json and .png."
-        ),
-        formatter_class=formatter,
-    )
-    _common(wp, "StormerVerlet,MidpointVI,KahanLi6,Tsit5,Tsit5+PID,Dopri8+PID")
-    wp.add_argument("--periods", type=POSITIVE, default=100, help="horizon, periods")
-    wp.add_argument(
-        "--steps-per-period",
-        type=_list(COUNT),
-        default=[50, 100, 200, 400],
-        help="comma-separated grid",
-    )
-    wp.add_argument(
-        "--rtols",
-        type=_list(RTOL),
-        default=[1e-6, 1e-8, 1e-10],
-        help="comma-separated tolerances",
-    )
-    wp.set_defaults(run=_work_precision)
-
-    seed = sub.add_parser(
-        "seed",
-        help="reproduce the seed thesis's Chapter 5 tables and figures",
-        description=(
-            "Reproduce Tables 5.1/5.2, Figures 5.1-5.3 and 1.1/1.2 of Hirani (2000) "
-            "beside the thesis's numbers; write chapter5.md and PNG figures."
-        ),
-        formatter_class=formatter,
-    )
-    _output(seed)
-    seed.set_defaults(run=_seed, dtype="float64")
-    return parser
+def run(args: argparse.Namespace) -> int:
+    """Run a parsed command (from `_diffrax_vi_cli`); returns the exit code."""
+    if args.dtype == "float64":
+        jax.config.update("jax_enable_x64", True)
+    try:
+        with compilation_cache(not args.no_cache):
+            return RUNS[args.command](args)
+    except UsageError as e:
+        print(f"diffrax-vi {args.command}: error: {e}", file=sys.stderr)
+        return 2
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -395,22 +282,10 @@ def main(argv: list[str] | None = None) -> int:
     code: 0 on success, 2 for a bad option (one line on stderr, before any work).
 
     It runs at the XLA setting that `import diffrax_vi` chose
-    ([`diffrax_vi.compile_small_loops_whole`][]), the same for every method."""
-    parser = _parser()
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as e:  # --help, or a bad option (already printed)
-        return int(e.code or 0)
-    if args.command is None:
-        parser.print_help()
-        return 2
-    if args.dtype == "float64":
-        jax.config.update("jax_enable_x64", True)
-    try:
-        return args.run(args)
-    except UsageError as e:
-        print(f"diffrax-vi {args.command}: error: {e}", file=sys.stderr)
-        return 2
+    ([`diffrax_vi.compile_small_loops_whole`][]), the same for every method, and
+    keeps its compiled programs in JAX's persistent compilation cache
+    ([`diffrax_vi.cli.compilation_cache`][]) unless `--no-cache` is given."""
+    return _main(argv)
 
 
 if __name__ == "__main__":

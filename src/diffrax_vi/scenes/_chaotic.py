@@ -5,7 +5,7 @@ from jaxtyping import Array, Float
 
 from .._lagrangian import AbstractQuadraticLagrangian, AbstractSeparableLagrangian
 from ._one_dof import parameter
-from ._scene import Scene
+from ._scene import GENERAL_SOLVERS, Scene
 
 
 class DoublePendulumLagrangian(AbstractQuadraticLagrangian):
@@ -57,6 +57,7 @@ def double_pendulum(angle: float = math.pi / 2) -> Scene:
     the energy stays bounded. Time scale $2\pi$ (the linear period is about 7.6)."""
     return Scene(
         name="double_pendulum",
+        solvers=GENERAL_SOLVERS,
         lagrangian=DoublePendulumLagrangian(),
         y0=(jnp.array([angle, angle]), jnp.zeros(2)),
         period=2 * math.pi,

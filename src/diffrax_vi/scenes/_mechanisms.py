@@ -16,7 +16,7 @@ from .._lagrangian import (
     velocity,
 )
 from ._one_dof import DuffingLagrangian, parameter, PendulumLagrangian
-from ._scene import agm, check_count, check_positive, Scene
+from ._scene import agm, check_count, check_positive, GENERAL_SOLVERS, Scene
 
 
 class DampedDrive(eqx.Module):
@@ -84,6 +84,7 @@ def cartesian_pendulum(amplitude: float = 2.0) -> Scene:
     lagrangian, circle = CartesianPendulumLagrangian(), Circle()
     return Scene(
         name="cartesian_pendulum",
+        solvers=GENERAL_SOLVERS,
         lagrangian=lagrangian,
         y0=(q0, jnp.zeros(2)),
         period=2 * math.pi / agm(1.0, math.cos(amplitude / 2)),
@@ -180,6 +181,7 @@ def four_bar(crank_speed: float = 3.0) -> Scene:
     v0 = jnp.concatenate([jnp.array([crank_speed]), rest])
     return Scene(
         name="four_bar",
+        solvers=GENERAL_SOLVERS,
         lagrangian=lagrangian,
         y0=(q0, momentum(lagrangian, 0.0, q0, v0)),
         period=2 * math.pi / crank_speed,

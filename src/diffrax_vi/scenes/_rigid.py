@@ -7,7 +7,7 @@ from jaxtyping import Array, Float
 from .._lagrangian import AbstractLagrangian, AbstractRigidBodyLagrangian
 from .._so3 import matmul, matvec, rmatvec, SO3
 from .._space import Euclidean
-from ._scene import check_positive, Scene
+from ._scene import check_positive, GENERAL_SOLVERS, RIGID_BODY_SOLVERS, Scene
 
 
 class RigidBodyLagrangian(AbstractRigidBodyLagrangian):
@@ -56,6 +56,7 @@ def free_rigid_body(
     period = 2 * jnp.pi / float(jnp.linalg.norm(pi0 / lagrangian.inertia))
     return Scene(
         name="free_rigid_body",
+        solvers=RIGID_BODY_SOLVERS,
         lagrangian=lagrangian,
         y0=(jnp.eye(3), pi0),
         period=float(period),
@@ -96,6 +97,7 @@ def heavy_top(
     pi0 = jnp.array([0.0, 0.0, inertia[2] * spin])
     return Scene(
         name="heavy_top",
+        solvers=RIGID_BODY_SOLVERS,
         lagrangian=lagrangian,
         y0=(R0, pi0),
         period=2 * float(jnp.pi) / spin,
@@ -142,6 +144,7 @@ def pendulum_3d(
     arm = float(jnp.linalg.norm(lagrangian.centre))
     return Scene(
         name="pendulum_3d",
+        solvers=RIGID_BODY_SOLVERS,
         lagrangian=lagrangian,
         y0=(jnp.eye(3), pi0),
         period=2 * float(jnp.pi) * (inertia[0] / (weight * arm)) ** 0.5,
@@ -212,6 +215,7 @@ def satellite(
     R0 = jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     return Scene(
         name="satellite",
+        solvers=GENERAL_SOLVERS,
         lagrangian=lagrangian,
         y0=((x0, R0), (p0, pi0)),
         period=2 * float(jnp.pi),

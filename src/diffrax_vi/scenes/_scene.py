@@ -35,6 +35,11 @@ class Scene(eqx.Module):
     - `monitor`: a step-size monitor `monitor(t, y, args) -> scalar` for reversible
         adaptive steps ([`diffrax_vi.ReversibleController`][]; the study's
         `+Adaptive` methods), or `None` where fixed steps suit the motion.
+    - `solvers`: the names (in `diffrax_vi.study.SOLVERS`, with the suffixes `+PID`
+        and `+Adaptive`) of the methods its default study compares, like with like,
+        where the command line's general default does not fit the scene (a general
+        Lagrangian, a constraint or a group, which `StormerVerlet` cannot take);
+        `None` for the general default.
     """
 
     name: str = eqx.field(static=True)
@@ -47,6 +52,7 @@ class Scene(eqx.Module):
     constraint: Callable | None = None
     args: PyTree = None
     monitor: Callable | None = None
+    solvers: tuple[str, ...] | None = eqx.field(static=True, default=None)
 
     def term(self) -> LagrangianTerm:
         """The scene's [`diffrax_vi.LagrangianTerm`][], with its force and
@@ -102,6 +108,21 @@ class Scene(eqx.Module):
         keys = jr.split(key, len(leaves))
 
         return jtu.tree_unflatten(treedef, list(map(perturb, keys, leaves)))
+
+
+# The methods a scene's default study compares where StormerVerlet and its
+# compositions do not apply: variational solvers of a LagrangianTerm against
+# diffrax's Runge-Kutta solvers on the same term, at equal steps and adaptive.
+GENERAL_SOLVERS = (
+    "MidpointVI",
+    "TrapezoidalVI",
+    "MidpointVI-Yoshida4",
+    "Tsit5",
+    "Dopri8",
+    "Dopri8+PID",
+)
+# A rigid body with constant inertia (an AbstractRigidBodyLagrangian) adds the LGVI.
+RIGID_BODY_SOLVERS = ("LGVI", *GENERAL_SOLVERS)
 
 
 def agm(a: float, b: float) -> float:

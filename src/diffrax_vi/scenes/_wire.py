@@ -5,7 +5,7 @@ from jaxtyping import Array, Float
 
 from .._lagrangian import AbstractQuadraticLagrangian
 from ._one_dof import parameter
-from ._scene import check_count, Scene
+from ._scene import check_count, GENERAL_SOLVERS, Scene
 
 
 class BeadWireLagrangian(AbstractQuadraticLagrangian):
@@ -74,6 +74,7 @@ def bead_wire(n: int = 32, displacement: float = 0.2) -> Scene:
     omega = math.sqrt(0.2 * k**2 + 4.0)
     return Scene(
         name="bead_wire",
+        solvers=GENERAL_SOLVERS,
         lagrangian=lagrangian,
         y0=(q0, jnp.zeros(n)),
         period=2 * math.pi / omega,

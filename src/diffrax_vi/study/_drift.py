@@ -112,11 +112,15 @@ class DriftStudy:
         return markdown_table(self.rows())
 
     def verdict(self) -> str:
-        """One line computed from the table: the run with the lowest energy error, the
-        one with the lowest energy error times wall time (the best error for the
-        work), and how the errors of the non-symplectic runs grow from the first to
-        the last tenth of the horizon against those of the symplectic runs (and of
-        the reversible adaptive runs, `+Adaptive`)."""
+        """One line computed from the table: where more than one invariant is
+        monitored, the run whose errors are closest to the best run's on every one
+        (the smallest worst factor over the best, so that a run that keeps the
+        energy but leaves SO(3) does not win); the run with the lowest energy error
+        (and, if it is not that one, the invariant it does worst on); the one with
+        the lowest energy error times wall time (the best error for the work); and
+        how the errors of the non-symplectic runs grow from the first to the last
+        tenth of the horizon against those of the symplectic runs (and of the
+        reversible adaptive runs, `+Adaptive`)."""
         ok = [r for r in self.runs if r.result == "successful"]
         if not ok:
             return "Verdict: every run failed (see the result column)."
@@ -125,11 +129,37 @@ class DriftStudy:
         what = "energy" if energy == "energy" else "energy-balance"
 
         def said(r):
-            return f"{r.solver} ({r.max_error(energy):.1e} in {r.wall_time:.2f} s)"
+            return f"{r.solver} ({r.max_error(energy):.1e} in {r.wall_time:.2g} s)"
+
+        # Each invariant's lowest non-zero error over the runs; a run's worst factor
+        # above it (a ratio of errors: the same in any units).
+        lowest = {
+            k: min(positive)
+            for k in self.invariants
+            if (positive := [r.max_error(k) for r in ok if r.max_error(k) > 0])
+        }
+
+        def worst(r):
+            return max(
+                ((max(r.max_error(k), low) / low, k) for k, low in lowest.items()),
+                default=(1.0, energy),
+            )
 
         best = min(ok, key=lambda r: r.max_error(energy))
         thrifty = min(ok, key=lambda r: r.max_error(energy) * max(r.wall_time, 1e-6))
-        parts = [f"lowest {what} error: {said(best)}"]
+        parts = []
+        if len(self.invariants) > 1:
+            overall = min(ok, key=worst)
+            factor, _ = worst(overall)
+            parts.append(
+                f"lowest errors on all {len(self.invariants)} invariants together: "
+                f"{overall.solver} (each within x{factor:.2g} of the best run's)"
+            )
+        lowest_energy = f"lowest {what} error: {said(best)}"
+        factor, invariant = worst(best)
+        if invariant != energy and factor > 10:
+            lowest_energy += f", but its {invariant} error is x{factor:.2g} the best"
+        parts.append(lowest_energy)
         if thrifty is not best:
             parts.append(f"best error for the time: {said(thrifty)}")
 
@@ -209,16 +239,20 @@ def check_drift(
     methods: Sequence[Method],
     periods: int | float,
     steps_per_period: int | float,
-    n_save: int | float,
+    n_save: int | float | None,
     dtype,
     ensemble: int | float | None = None,
-) -> int:
+) -> tuple[int, int]:
     """Check a drift study's methods (as [`diffrax_vi.study.as_method`][] makes them)
     and settings without running anything, raising what
     [`diffrax_vi.study.drift`][] would raise (its **Raises**); returns the number of
-    fixed steps. The command line calls it before it creates the output folder."""
+    fixed steps and of save intervals (`n_save`, or by default the largest divisor
+    of the steps up to 1000). The command line calls it before it creates the
+    output folder."""
     check_methods(scene, methods)
     n_steps = step_count(periods, steps_per_period)
+    if n_save is None:
+        n_save = max(k for k in range(1, min(n_steps, 1000) + 1) if n_steps % k == 0)
     if isinstance(n_save, bool) or int(n_save) != n_save or n_steps % n_save:
         raise ValueError(
             f"n_save={n_save} must divide the number of steps {n_steps} "
@@ -230,7 +264,7 @@ def check_drift(
         state = sum(jnp.size(x) for x in jax.tree.leaves(scene.y0))
         recorded = (n_save + 1) * len(scene.conserved())
         ensemble_fits(ensemble, jnp.dtype(dtype).itemsize * (recorded + 32 * state))
-    return n_steps
+    return n_steps, int(n_save)
 
 
 def drift(
@@ -239,7 +273,7 @@ def drift(
     *,
     periods: int | float = 1000,
     steps_per_period: int = 200,
-    n_save: int = 1000,
+    n_save: int | None = None,
     dtype=jnp.float64,
     rtol: float = 1e-8,
     ensemble: int | None = None,
@@ -269,9 +303,9 @@ def drift(
     - `steps_per_period`: fixed steps per period (the mean for `+Adaptive`
         methods).
     - `n_save`: how many intervals to record the largest errors over; must divide
-        the number of steps. An adaptive method may take at most 4096 steps per
-        interval (a step size collapsing to nothing then fails the run rather than
-        spinning).
+        the number of steps (by default the largest divisor up to 1000). An
+        adaptive method may take at most 4096 steps per interval (a step size
+        collapsing to nothing then fails the run rather than spinning).
     - `dtype`: the floating dtype of the state, the Lagrangian's parameters and the
         times.
     - `rtol`: the tolerance of `+PID` methods.
@@ -296,7 +330,7 @@ def drift(
     an ensemble that cannot be split evenly across the devices.
     """
     methods = [as_method(spec, rtol) for spec in non_empty("solvers", solvers)]
-    n_steps = check_drift(
+    n_steps, n_save = check_drift(
         scene, methods, periods, steps_per_period, n_save, dtype, ensemble
     )
     if ensemble is not None and spread != 0:

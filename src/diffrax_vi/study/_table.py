@@ -4,15 +4,16 @@ import pathlib
 
 
 def markdown_table(rows: list[dict]) -> str:
-    """Records as a Markdown table: errors in scientific notation, seconds to the
-    millisecond, `None` (a setting that does not apply) as a dash."""
+    """Records as a Markdown table: errors in scientific notation, seconds to three
+    significant digits (a short run's too), `None` (a setting that does not apply)
+    as a dash."""
     header = list(rows[0])
 
     def cell(key, value):
         if value is None:
             return "–"
         if isinstance(value, float):
-            return f"{value:.3f}" if key.endswith("_s") else f"{value:.3e}"
+            return f"{value:.3g}" if key.endswith("_s") else f"{value:.3e}"
         return str(value)
 
     lines = [
