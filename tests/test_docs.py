@@ -13,9 +13,6 @@ import pytest
 
 DOCS = pathlib.Path(__file__).parent.parent / "docs"
 _PYTHON_BLOCK = re.compile(r"^```python\n(.*?)^```", re.S | re.M)
-# XLA reads the small-loop setting when its backend starts: a block that changes it is
-# a script's first lines, so it runs in a process of its own.
-_OWN_PROCESS = "keep_xla_default()"
 
 
 def _run(source: str, tmp_path: pathlib.Path, name: str):
@@ -32,11 +29,7 @@ def _run(source: str, tmp_path: pathlib.Path, name: str):
 def test_page_code_blocks_run(page, tmp_path):
     blocks = _PYTHON_BLOCK.findall((DOCS / page).read_text())
     assert blocks, f"{page} has no Python block"
-    alone = [b for b in blocks if _OWN_PROCESS in b]
-    together = [b for b in blocks if _OWN_PROCESS not in b]
-    stdout = _run("\n".join(together), tmp_path, "page.py")
-    for i, block in enumerate(alone):
-        _run(block + "\nimport jax.numpy as jnp\njnp.zeros(1)\n", tmp_path, f"{i}.py")
+    stdout = _run("\n".join(blocks), tmp_path, "page.py")
     if page == "getting-started.md":
         # The study prints its table and verdict.
         assert "| MidpointVI |" in stdout and "Verdict" in stdout

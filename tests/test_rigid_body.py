@@ -160,21 +160,29 @@ def test_what_lgvi_cannot_take_says_what_to_use():
         dfx.diffeqsolve(damped, dvi.LGVI(), 0.0, 1.0, 0.1, top.y0)
 
 
-def test_a_zero_moment_of_inertia_is_singular_not_a_nan():
+@pytest.mark.parametrize(
+    "solver", [dvi.LGVI(), dvi.MidpointVI(), dvi.TrapezoidalVI(), dfx.Tsit5()]
+)
+def test_a_zero_moment_of_inertia_or_mass_is_singular_not_a_nan(solver):
+    """As the errors page says: `singular` from the implicit solvers, and the
+    degenerate-Lagrangian message (not a force's) from Runge-Kutta."""
     top = dvi.scenes.free_rigid_body()
-    lagrangian = type(top.lagrangian)(
+    rigid = type(top.lagrangian)(
         jnp.array([1.0, 0.0, 1.0]), top.lagrangian.centre, top.lagrangian.weight
     )
-    sol = dfx.diffeqsolve(
-        dvi.LagrangianTerm(lagrangian),
-        dvi.LGVI(),
-        0.0,
-        1.0,
-        0.1,
-        top.y0,
-        throw=False,
-    )
-    assert sol.result == dfx.RESULTS.singular
+    massless = dvi.Lagrangian(lambda t, q, v, args: 0.0 * jnp.sum(v**2) - q @ q)
+    cases = [(rigid, top.y0), (massless, (jnp.ones(2), jnp.zeros(2)))]
+    if isinstance(solver, dvi.LGVI):
+        cases = cases[:1]
+    for lagrangian, y0 in cases:
+        solve = lambda: dfx.diffeqsolve(
+            dvi.LagrangianTerm(lagrangian), solver, 0.0, 1.0, 0.1, y0, throw=False
+        )
+        if isinstance(solver, dfx.Tsit5):
+            with pytest.raises(Exception, match="The Lagrangian is degenerate"):
+                solve()
+        else:
+            assert solve().result == dfx.RESULTS.singular
 
 
 def test_runge_kutta_on_a_rigid_body_runs_as_on_eulers_equations():
@@ -204,3 +212,69 @@ def test_runge_kutta_on_a_rigid_body_runs_as_on_eulers_equations():
     ).ys
     for a, b in zip(ours, theirs):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-13)
+
+
+@pytest.mark.parametrize(
+    "solver", [dvi.MidpointVI(), dvi.LGVI()], ids=["MidpointVI", "LGVI"]
+)
+def test_a_start_attitude_off_the_group_is_refused(solver):
+    """A start matrix off orthogonality by 1e-3, or a reflection, would run as a
+    "successful" solve that stays off SO(3): refused, with how to project it. One
+    off by round-off (1e-12) runs."""
+    scene = dvi.scenes.free_rigid_body()
+    R0, pi0 = scene.y0
+    solve = jax.jit(
+        lambda R: dfx.diffeqsolve(scene.term(), solver, 0.0, 0.5, 0.1, (R, pi0)).ys
+    )
+    nudge = jnp.zeros((3, 3)).at[0, 1].set(1.0)
+    for R in (R0 + 1e-3 * nudge, jnp.diag(jnp.array([1.0, 1.0, -1.0]))):
+        with pytest.raises(Exception, match="not on its group") as caught:
+            jax.block_until_ready(solve(R))
+        assert "jnp.linalg.svd" in str(caught.value)
+    R, _ = solve(R0 + 1e-12 * nudge)
+    assert np.max(np.abs(R[-1].T @ R[-1] - np.eye(3))) < 1e-11
+
+
+def test_a_planar_angle_off_the_group_is_refused():
+    L = dvi.Lagrangian(lambda t, q, v, args: 0.5 * v**2 + q[0, 0], space=dvi.SO2())
+    R0 = jnp.array([[1.0, 0.0], [0.0, -1.0]])  # a reflection
+    with pytest.raises(Exception, match="not on its group"):
+        dfx.diffeqsolve(
+            dvi.LagrangianTerm(L), dvi.MidpointVI(), 0.0, 0.3, 0.1, (R0, jnp.array(0.0))
+        )
+
+
+def test_a_torque_of_the_wrong_shape_names_the_angular_velocitys(as_a_user_runs_it):
+    """A torque shaped like the matrix R is refused with the body angular
+    velocity's shape, and the fix the message gives runs."""
+    scene = dvi.scenes.free_rigid_body()
+
+    def solve(force):
+        term = dvi.LagrangianTerm(scene.lagrangian, force=force)
+        return dfx.diffeqsolve(term, dvi.MidpointVI(), 0.0, 0.2, 0.1, scene.y0)
+
+    with pytest.raises(ValueError, match=r"velocity has shape \(3,\)") as caught:
+        solve(lambda t, q, v, args: jnp.full_like(q, 0.1))
+    assert "jnp.full_like(v, value)" in str(caught.value)
+    sol = solve(lambda t, q, v, args: jnp.full_like(v, 0.1))
+    assert sol.result == dfx.RESULTS.successful
+
+
+def test_runge_kutta_with_a_nan_torque_fails_clearly_in_fixed_steps():
+    """solve_fixed_steps with Tsit5 and a NaN torque: on a rigid body (its velocity
+    map settled, no check in the loop) it returns RESULTS.nonfinite; on a general
+    Lagrangian on SO(3) the term's own message is raised, as diffeqsolve raises it,
+    not a failed host callback."""
+    scene = dvi.scenes.free_rigid_body()
+    nan_torque = lambda t, q, v, args: jnp.full_like(v, jnp.nan)
+    rigid = dvi.LagrangianTerm(scene.lagrangian, force=nan_torque)
+    sol = dvi.solve_fixed_steps(rigid, dfx.Tsit5(), 0.0, 1.0, 0.1, scene.y0)
+    assert sol.result == dfx.RESULTS.nonfinite
+    J = scene.lagrangian.inertia
+    general = dvi.Lagrangian(
+        lambda t, q, v, args: 0.5 * jnp.sum(J * v**2), space=dvi.SO3()
+    )
+    term = dvi.LagrangianTerm(general, force=nan_torque)
+    with pytest.raises(Exception, match="NaN or inf at a finite state") as caught:
+        dvi.solve_fixed_steps(term, dfx.Tsit5(), 0.0, 1.0, 0.1, scene.y0)
+    assert "INTERNAL" not in str(caught.value)

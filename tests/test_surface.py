@@ -226,6 +226,50 @@ def test_import_compiles_small_loops_whole_unless_opted_out():
             dvi.compile_small_loops_whole(bad)
 
 
+def test_xla_setting_changes_only_its_own_entry():
+    """Flags the user sets after `import diffrax_vi` survive a change or undo of the
+    package's threshold, and take effect (four host devices)."""
+    out = _run(
+        """
+        import os
+        import diffrax_vi as dvi
+        device_count = "--xla_force_host_platform_device_count=4"
+        os.environ["XLA_FLAGS"] = os.environ["XLA_FLAGS"] + " " + device_count
+        assert dvi.compile_small_loops_whole(1 << 20)
+        flags = os.environ["XLA_FLAGS"]
+        assert device_count in flags and flags.count("byte_threshold") == 1, flags
+        assert dvi.keep_xla_default()
+        flags = os.environ["XLA_FLAGS"]
+        assert device_count in flags and "byte_threshold" not in flags, flags
+        import jax
+        assert len(jax.devices()) == 4, jax.devices()
+        print("ok")
+        """,
+        XLA_FLAGS="--xla_backend_extra_options=xla_cpu_use_thunk_runtime=true",
+    )
+    assert out.stdout.strip() == "ok", out.stderr
+
+
+def test_import_after_jax_started_warns_once():
+    out = _run(
+        """
+        import warnings
+        import jax.numpy as jnp
+        jnp.zeros(1)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            import diffrax_vi
+            import diffrax_vi.cli
+        messages = [str(w.message) for w in caught]
+        assert len(messages) == 1 and "cannot apply" in messages[0], messages
+        assert "DIFFRAX_VI_XLA_DEFAULT=1" in messages[0]
+        print("ok")
+        """,
+        XLA_FLAGS="",
+    )
+    assert out.stdout.strip() == "ok", out.stderr
+
+
 def test_python_dash_m_runs_the_command_line():
     out = subprocess.run(
         [sys.executable, "-m", "diffrax_vi", "drift", "--help"],

@@ -39,9 +39,12 @@ def applied_force(
     for f, vi in zip(jtu.tree_leaves(out), jtu.tree_leaves(v)):
         if jnp.shape(f) != jnp.shape(vi):
             raise ValueError(
-                f"The force returned a leaf of shape {jnp.shape(f)} for a position "
-                f"of shape {jnp.shape(vi)}: it needs one component per degree of "
-                "freedom (broadcast it, e.g. `jnp.full_like(q, torque)`)."
+                f"The force returned a leaf of shape {jnp.shape(f)} where the "
+                f"velocity has shape {jnp.shape(vi)}: it needs one component per "
+                "degree of freedom, the shape of the velocity v (of q in a vector "
+                "space; on a group the body angular velocity, shape (3,) on SO3 and "
+                "() on SO2, not the matrix's). Broadcast it with "
+                "`jnp.full_like(v, value)`, v being the force's third argument."
             )
         if not jnp.issubdtype(jnp.result_type(f), jnp.floating):
             raise ValueError(

@@ -206,9 +206,18 @@ def solve_fixed_steps(
         )
     if unroll is not None and (not isinstance(unroll, int) or unroll < 1):
         raise ValueError(f"unroll must be a positive integer; got {unroll!r}.")
-    per_interval = n // n_save
     t0, t1, dt0 = (jnp.asarray(x, dtype) for x in (t0, t1, dt0))
     _check_solver(terms, solver, t0, y0, args)
+    # Compiled with equinox, as diffeqsolve is, so that an error raised inside the
+    # loop (a LagrangianTerm's, under a Runge-Kutta solver) reads as its message,
+    # not as a failed host callback.
+    return _scan_steps(terms, solver, t0, t1, dt0, y0, args, n, n_save, unroll)
+
+
+@eqx.filter_jit
+def _scan_steps(terms, solver, t0, t1, dt0, y0, args, n, n_save, unroll):
+    dtype = t0.dtype
+    per_interval = n // n_save
     n_t = jnp.asarray(n, dtype)
     # diffeqsolve rounds a step end within 100 ulp of t1 to t1.
     t1_floor = t1

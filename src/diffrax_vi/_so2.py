@@ -3,7 +3,7 @@
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._so3 import matmul
+from ._so3 import matmul, rotation_departure
 from ._space import AbstractSpace
 
 
@@ -42,3 +42,6 @@ class SO2(AbstractSpace):
 
     def coadjoint(self, xi, mu):
         return jnp.zeros_like(mu)
+
+    def departure(self, q):
+        return rotation_departure(q)

@@ -47,6 +47,18 @@ def rmatvec(a: Float[Array, "3 3"], x: Float[Array, " 3"]) -> Float[Array, " 3"]
     return jnp.sum(a * x[:, None], axis=0)
 
 
+def rotation_departure(R: Float[Array, "n n"]) -> Float[Array, ""]:
+    r"""How far `R` is from a rotation, a pure number: the largest entry of
+    $|R^\top R - I|$, or at least 2 for a reflection ($\det R < 0$), which no
+    rotation is near."""
+    off = jnp.max(jnp.abs(matmul(R.T, R) - jnp.eye(R.shape[0], dtype=R.dtype)))
+    if R.shape == (2, 2):
+        det = R[0, 0] * R[1, 1] - R[0, 1] * R[1, 0]
+    else:
+        det = jnp.dot(R[0], jnp.cross(R[1], R[2]))
+    return jnp.where(det < 0, jnp.maximum(off, 2.0), off)
+
+
 def _exp(x: Float[Array, " 3"]) -> Float[Array, "3 3"]:
     return jaxlie.SO3.exp(x).as_matrix()
 
@@ -172,3 +184,6 @@ class SO3(AbstractSpace):
 
     def coadjoint(self, xi, mu):
         return jnp.cross(mu, xi)
+
+    def departure(self, q):
+        return rotation_departure(q)

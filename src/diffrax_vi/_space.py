@@ -32,7 +32,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-from jaxtyping import PyTree
+from jaxtyping import Array, PyTree
 
 
 class AbstractSpace(eqx.Module):
@@ -70,6 +70,11 @@ class AbstractSpace(eqx.Module):
     @abc.abstractmethod
     def coadjoint(self, xi: PyTree, mu: PyTree) -> PyTree:
         r"""$\mathrm{ad}^*_\xi \mu$, the term a group adds to $\dot\mu$."""
+
+    def departure(self, q: PyTree) -> Array:
+        """How far `q` lies off the space, a pure number (unit-free): 0 in a vector
+        space, which holds every array of its shape."""
+        return jnp.zeros(())
 
 
 class Euclidean(AbstractSpace):
@@ -143,6 +148,12 @@ def transport(space, x, w):
 
 def coadjoint(space, xi, mu):
     return _map("coadjoint", space, xi, mu)
+
+
+def departure(space, q) -> Array:
+    """The largest `departure` of the parts of `q` from their spaces."""
+    parts = jtu.tree_leaves(_map("departure", space, q))
+    return jnp.max(jnp.stack([jnp.asarray(x, float) for x in parts]))
 
 
 def tangent_line(space, q, eta):

@@ -18,6 +18,7 @@ it (`raise_on_import`), unless the user opted out or set it, or JAX already star
 
 import os
 import re
+import warnings
 
 from ._private_api import backends_are_initialized
 
@@ -35,8 +36,9 @@ OPT_OUT = "DIFFRAX_VI_XLA_DEFAULT"
 _OPTION = "xla_cpu_small_while_loop_byte_threshold"
 _EXTRA = "--xla_backend_extra_options="
 
-# `XLA_FLAGS` as it was before this package changed it, or None if it did not.
-_flags_before: str | None = None
+# The option this package put into `XLA_FLAGS` (`name=value`), or None: it changes
+# only that entry, never the user's flags, whenever they were set.
+_ours: str | None = None
 
 
 def small_loop_flag(threshold_bytes: int) -> str:
@@ -54,8 +56,22 @@ def _with_threshold(flags: str, threshold_bytes: int) -> str:
     return flags[: match.end()] + "," + entry + flags[match.end() :]
 
 
+def _without_ours(flags: str) -> str:
+    """`flags` with this package's entry taken out of the backend options (and the
+    flag itself if that entry was its only option); everything else as it is."""
+    match = re.search(rf"{_EXTRA}(\S+)", flags)
+    if _ours is None or match is None:
+        return flags
+    options = match.group(1).split(",")
+    if _ours not in options:
+        return flags
+    options.remove(_ours)
+    kept = f"{_EXTRA}{','.join(options)}" if options else ""
+    return " ".join((flags[: match.start()] + kept + flags[match.end() :]).split())
+
+
 def _raised_by_user(flags: str) -> bool:
-    return _flags_before is None and re.search(rf"\b{_OPTION}=", flags) is not None
+    return re.search(rf"\b{_OPTION}=", _without_ours(flags)) is not None
 
 
 def _too_late(what: str, fix: str) -> RuntimeError:
@@ -79,12 +95,14 @@ def compile_small_loops_whole(threshold_bytes: int = SMALL_LOOP_BYTES) -> bool:
     starts the backend, which reads the setting once).
 
     Returns `False` and changes nothing if the user's own `XLA_FLAGS` sets the
-    threshold (their choice stands); `True` once set.
+    threshold (their choice stands); `True` once set. It changes only this
+    package's own entry in `XLA_FLAGS`: flags the user set, before or after
+    `import diffrax_vi`, stay.
 
     **Raises:** `RuntimeError` if JAX's backend has already started, as the setting
     would then be silently ignored.
     """
-    global _flags_before
+    global _ours
     if (
         isinstance(threshold_bytes, bool)
         or not isinstance(threshold_bytes, int)
@@ -102,9 +120,8 @@ def compile_small_loops_whole(threshold_bytes: int = SMALL_LOOP_BYTES) -> bool:
             "compile_small_loops_whole()",
             f"set the environment variable XLA_FLAGS={flag}",
         )
-    if _flags_before is None:
-        _flags_before = flags
-    os.environ["XLA_FLAGS"] = _with_threshold(_flags_before, threshold_bytes)
+    os.environ["XLA_FLAGS"] = _with_threshold(_without_ours(flags), threshold_bytes)
+    _ours = f"{_OPTION}={threshold_bytes}"
     return True
 
 
@@ -116,26 +133,43 @@ def keep_xla_default() -> bool:
     setting it at all.
 
     Returns `True` if it removed this package's setting, `False` if there was none
-    (a threshold in the user's own `XLA_FLAGS` stays).
+    (a threshold in the user's own `XLA_FLAGS` stays). Only this package's entry
+    is removed: every other flag in `XLA_FLAGS`, set before or after the import,
+    stays.
 
     **Raises:** `RuntimeError` if this package's setting is in force and JAX's
     backend has already started, so it can no longer be undone.
     """
-    global _flags_before
-    if _flags_before is None:
+    global _ours
+    if _ours is None:
         return False
     if backends_are_initialized():
         raise _too_late(
             "keep_xla_default()", f"set the environment variable {OPT_OUT}=1"
         )
-    os.environ["XLA_FLAGS"] = _flags_before
-    _flags_before = None
+    os.environ["XLA_FLAGS"] = _without_ours(os.environ.get("XLA_FLAGS", ""))
+    _ours = None
     return True
 
 
 def raise_on_import() -> None:
     """What `import diffrax_vi` does: `compile_small_loops_whole()`, unless
-    `DIFFRAX_VI_XLA_DEFAULT` is set, the user's `XLA_FLAGS` sets the threshold, or
-    JAX's backend has already started (then the import changes nothing)."""
-    if os.environ.get(OPT_OUT, "") in ("", "0") and not backends_are_initialized():
-        compile_small_loops_whole()
+    `DIFFRAX_VI_XLA_DEFAULT` is set or the user's `XLA_FLAGS` sets the threshold.
+    If JAX's backend has already started, the setting cannot apply: it warns once,
+    saying how to apply it, and changes nothing."""
+    if os.environ.get(OPT_OUT, "") not in ("", "0"):
+        return
+    if _raised_by_user(os.environ.get("XLA_FLAGS", "")):
+        return
+    if backends_are_initialized():
+        warnings.warn(
+            "diffrax_vi was imported after JAX started its backend, so its faster "
+            "setting for small CPU loops (XLA_FLAGS="
+            f"{small_loop_flag(SMALL_LOOP_BYTES)}) cannot apply to this process. "
+            "Import diffrax_vi before the first JAX array or computation, or set "
+            f"that XLA_FLAGS before starting Python; set {OPT_OUT}=1 to keep XLA's "
+            "default and silence this warning.",
+            stacklevel=2,
+        )
+        return
+    compile_small_loops_whole()

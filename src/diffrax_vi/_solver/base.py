@@ -26,8 +26,9 @@ from .._custom_types import Args, P, Q, RealScalarLike, V
 from .._lagrangian import momentum_offset
 from .._misc import split_state, state_dtype, sum_is_finite
 from .._private_api import AdjointTerm, NoForwardingSolverMeta, unvmap_any, WrapTerm
-from .._space import is_euclidean, retract, velocity
+from .._space import departure, is_euclidean, retract, velocity
 from .._term import LagrangianTerm
+from .._tolerance import newton_tolerance
 
 
 _markers = dict(metaclass=NoForwardingSolverMeta)
@@ -188,6 +189,28 @@ def check_times(t0: RealScalarLike, t1: RealScalarLike, state: PyTree) -> PyTree
         "The first step from t0 to t0 + dt0 (or to t1) is NaN or infinite: check "
         "that t0, t1 and dt0 are finite numbers. diffeqsolve would otherwise take no "
         "step and report success.",
+    )
+
+
+OFF_GROUP = (
+    "The initial position is not on its group: a rotation matrix R0 (SO3, SO2) "
+    "must have R0^T R0 = I to within sqrt(eps) of its dtype (1.5e-8 in float64, "
+    "3.5e-4 in float32; a pure number, in any units) and det R0 = +1 (a "
+    "reflection is not a rotation). A solve from it would stay off the group and "
+    "report success. Project it onto the nearest rotation first: "
+    "`U, _, Vt = jnp.linalg.svd(R0); R0 = U @ Vt` (and flip a column of U if "
+    "det(U @ Vt) < 0), or build it from an angle or an exponential map."
+)
+
+
+def check_on_space(space: PyTree, q0: PyTree, state: PyTree) -> PyTree:
+    """`state`, or an error if a start position is off its group (see
+    `_space.departure`); nothing to check in a vector space."""
+    if is_euclidean(space):
+        return state
+    dtype = jnp.result_type(*jtu.tree_leaves(q0))
+    return eqx.error_if(
+        state, departure(space, q0) > newton_tolerance(dtype), OFF_GROUP
     )
 
 
@@ -377,7 +400,9 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
             type(self).__name__,
         )
         work = None if step.term.force is None else jnp.zeros((), step.dtype)
-        return check_times(t0, t1, VIState(self.method_init(step), compensation, work))
+        state = VIState(self.method_init(step), compensation, work)
+        state = check_on_space(step.term.lagrangian.space, y0[0], state)
+        return check_times(t0, t1, state)
 
     def step(
         self,
