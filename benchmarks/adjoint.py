@@ -20,7 +20,7 @@ and 2*10^4 steps; StormerVerlet and MidpointVI under ReversibleController, about
 the double pendulum released from horizontal (chaotic; MidpointVI, h = 0.01, over
 growing horizons).
 
-Targets (issue 29): ReversibleAdjoint <= 0.6x the time of RecursiveCheckpointAdjoint
+Targets: ReversibleAdjoint <= 0.6x the time of RecursiveCheckpointAdjoint
 on the 256-mass chain at 2*10^4 steps, <= 0.2x on Kepler at 10^5 steps; its peak
 memory on the 4096-mass chain within 100 MB between 2*10^3 and 2*10^4 steps.
 

@@ -139,7 +139,7 @@ def main():
             f"{loop / rate:>18.2f}x {ratios}"
         )
     print(
-        "targets (issue 13): study >= 0.5x the bare scan at 1024 members on CPU; "
+        "targets: study >= 0.5x the bare scan at 1024 members on CPU; "
         ">= 0.5x the unrolled scan at >= 131072 members on a GPU"
     )
 

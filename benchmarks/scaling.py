@@ -9,7 +9,7 @@ solver on two large systems, as ratios from one run:
   by springs: a kinetic energy that depends on the configuration, non-separable.
 
 For each solver it prints the time per step at each N, the growth exponent fitted
-over N = 256 ... 4096 (least squares on log-log), and the targets of issue 13:
+over N = 256 ... 4096 (least squares on log-log), and the targets:
 
 - MidpointVI on the generic chain at N = 1024 <= 10x Tsit5 on the separable form;
 - growth exponents of MidpointVI and GaussVPRK(2) from 256 to 4096 <= 1.2;
@@ -211,7 +211,7 @@ def main():
     def at(name, n):
         return chain[name][sizes.index(n)] if name in chain and n in sizes else math.nan
 
-    print("\nTargets (issue 13):")
+    print("\nTargets:")
     ratio = at("MidpointVI", 1024) / at("Tsit5 (separable)", 1024)
     print(f"  MidpointVI / Tsit5 (separable), N = 1024     {ratio:7.2f}x  (<= 10)")
     for name in ("MidpointVI", "GaussVPRK(2)"):

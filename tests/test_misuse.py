@@ -204,6 +204,17 @@ def test_complex_state_is_refused():
             0.1,
             (jnp.array(1.0 + 0j), jnp.array(0j)),
         )
+    # On StormerVerlet's pair of ODETerms there is no Lagrangian: the message does
+    # not speak of one.
+    pair = (
+        dfx.ODETerm(lambda t, p, args: p),
+        dfx.ODETerm(lambda t, q, args: -q),
+    )
+    y0 = (jnp.array([1.0 + 1j]), jnp.array([0j]))
+    with pytest.raises(ValueError, match="pair of terms") as caught:
+        with pytest.warns(UserWarning):
+            dfx.diffeqsolve(pair, dvi.StormerVerlet(), 0.0, 1.0, 0.1, y0)
+    assert "a Lagrangian's" not in str(caught.value)
 
 
 # --- Tableaus, root finders, controllers, adjoints ---------------------------

@@ -341,6 +341,9 @@ def test_linearized_orders(velocity, duffing_order):
     exact = float(reference(Duffing(), y0, 5.0)[0])
     errors = [abs(float(final(Duffing(), y0, n)) - exact) for n in ns]
     assert abs(fitted_order(hs, errors) - duffing_order) < 0.3, errors
+    # The order the solver reports (as diffrax's PIDController reads it) is the
+    # fitted one.
+    assert dvi.LinearizedVI(velocity=velocity).order(None) == duffing_order
 
 
 def test_linearized_backward_vmap_grad():

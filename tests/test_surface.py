@@ -351,3 +351,24 @@ def test_private_api_assumptions():
         "passed_controller_state",
     ]
     assert list(inspect.signature(only_transpose_ys).parameters) == ["final_state"]
+
+
+def test_public_names_are_the_packages_own():
+    """Every public name of `diffrax_vi` is defined by the package (or is one of its
+    modules): no standard-library module leaks in (`diffrax_vi.importlib`). In a
+    fresh process, as a user imports it (the suite's jaxtyping hook adds a name)."""
+    out = _run(
+        """
+        import types
+        import diffrax_vi as dvi
+        for name in dir(dvi):
+            if name.startswith("_"):
+                continue
+            obj = getattr(dvi, name)
+            module = isinstance(obj, types.ModuleType)
+            where = obj.__name__ if module else obj.__module__
+            assert where.startswith("diffrax_vi"), (name, where)
+        print("ok")
+        """
+    )
+    assert out.stdout.strip() == "ok", out.stderr

@@ -1,4 +1,4 @@
-import importlib.metadata
+import importlib.metadata as _metadata
 
 from . import diagnostics as diagnostics, scenes as scenes, study as study
 from ._adaptive import (
@@ -68,7 +68,7 @@ from ._xla import (
 )
 
 
-__version__ = importlib.metadata.version("diffrax_vi")
+__version__ = _metadata.version("diffrax_vi")
 
 # Small loops compiled whole on CPU; the reasons and the opt-out are in `_xla`.
 _raise_on_import()

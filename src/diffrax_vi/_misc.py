@@ -92,9 +92,10 @@ def split_state(y: PyTree, name: str = "y0", space: PyTree = None) -> tuple[Q, P
         )
     if any(jnp.iscomplexobj(x) for x in jtu.tree_leaves(y)):
         raise ValueError(
-            f"`{name} = (q, p)` is complex, and a Lagrangian's positions and momenta "
-            "are real: write each complex coordinate as two real ones (its real and "
-            "imaginary parts)."
+            f"`{name} = (q, p)` is complex, and this package's solvers step real "
+            "positions and momenta (of a Lagrangian, or of the pair of terms "
+            "dq/dt = f(p), dp/dt = g(q)): write each complex coordinate as two real "
+            "ones (its real and imaginary parts)."
         )
     q, p = y
     check_state(q, p, name, space)

@@ -5,6 +5,7 @@ JAX; this module runs the commands."""
 
 import argparse
 import contextlib
+import dataclasses
 import math
 import os
 import pathlib
@@ -199,6 +200,7 @@ def _drift(args: argparse.Namespace) -> int:
         spread=args.spread,
         progress=args.progress,
     )
+    study = dataclasses.replace(study, parameters=", ".join(args.param))
     return _report(study, out, study.verdict())
 
 
@@ -223,6 +225,7 @@ def _work_precision(args: argparse.Namespace) -> int:
         rtols=args.rtols,
         dtype=args.dtype,
     )
+    study = dataclasses.replace(study, parameters=", ".join(args.param))
     return _report(study, out)
 
 

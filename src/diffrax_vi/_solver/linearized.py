@@ -140,7 +140,10 @@ class LinearizedVI(AbstractVariationalSolver):
             )
 
     def order(self, terms):
-        return None
+        # The global order on a nonlinear problem, fitted in tests/test_seed.py:
+        # forward velocities drop to 1 (their O(h) local error, Hirani (2000),
+        # §5.5); centered ones (§5.6) keep 2.
+        return 1 if self.velocity == "forward" else 2
 
     def _linear_solve(self, matvec, rhs, guess, tags) -> tuple[PyTree, lx.RESULTS]:
         # Conjugate gradients for a symmetric matrix at every size: no LAPACK call,

@@ -53,7 +53,6 @@ from ._three_body import pythagorean_three_body as pythagorean_three_body
 from ._wire import bead_wire as bead_wire, BeadWireLagrangian as BeadWireLagrangian
 
 
-# Name -> a function making the scene with its default parameters.
 SCENES = {
     "kepler": kepler,
     "falling_particle": falling_particle,
@@ -75,5 +74,10 @@ SCENES = {
     "pendulum_3d": pendulum_3d,
     "satellite": satellite,
 }
-# The scenes with a step-size monitor (`Scene.monitor`), for `+Adaptive` methods.
+"""Every scene by name (the names `diffrax-vi --scene` accepts), each with the
+function that makes it: called with no arguments, it gives the scene at its default
+parameters."""
+
 MONITORED = ("kepler", "outer_solar_system", "pythagorean_three_body")
+"""The names of the scenes with a step-size monitor (`Scene.monitor`), which the
+study's `+Adaptive` methods step by."""

@@ -52,6 +52,8 @@ class DriftRun:
     reversible: bool = False
 
     def max_error(self, name: str) -> float:
+        """The largest error of the invariant `name` over the whole run (NaN after a
+        failure)."""
         return float(np.max(self.errors[name]))
 
     def growth(self, name: str = "energy") -> float:
@@ -72,7 +74,9 @@ class DriftStudy:
     [`diffrax_vi.study.DriftRun`][] per method, and `step`, the fixed step actually
     taken (`periods * period / (periods * steps_per_period)`).
 
-    `verdict()` says in one line what the numbers show."""
+    `verdict()` says in one line what the numbers show. `parameters` names the
+    scene's parameters set apart from its defaults (`"eccentricity=0.9"`, as the
+    command line's `--param`), for titles and `drift.json`."""
 
     scene: str
     periods: int | float
@@ -81,6 +85,7 @@ class DriftStudy:
     members: int
     runs: list[DriftRun]
     step: float = float("nan")
+    parameters: str = ""
 
     @property
     def invariants(self) -> list[str]:
@@ -192,6 +197,7 @@ class DriftStudy:
             "drift",
             self.rows(),
             scene=self.scene,
+            parameters=self.parameters,
             periods=self.periods,
             steps_per_period=self.steps_per_period,
             step=self.step,

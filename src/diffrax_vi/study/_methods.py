@@ -24,7 +24,6 @@ from ..scenes import Scene
 from ._checks import tolerance
 
 
-# Name -> a function making the solver.
 SOLVERS = {
     "MidpointVI": MidpointVI,
     "TrapezoidalVI": TrapezoidalVI,
@@ -46,6 +45,11 @@ SOLVERS = {
     "Dopri5": dfx.Dopri5,
     "Dopri8": dfx.Dopri8,
 }
+"""Every solver a study and `diffrax-vi --solvers` accept by name, each with a
+function of no arguments that makes it; the suffix `+PID` steps a Runge-Kutta one
+with a `diffrax.PIDController`, `+Adaptive` a symmetric one with a
+[`diffrax_vi.ReversibleController`][]."""
+
 ADAPTIVE_SUFFIX = "+PID"
 REVERSIBLE_SUFFIX = "+Adaptive"
 

@@ -41,14 +41,17 @@ class WorkPrecision:
     """The result of [`diffrax_vi.study.work_precision`][]: one record per method and
     setting (steps per period for fixed steps, tolerance for `+PID` methods), with
     its wall time, steps, largest energy error over the horizon and global error at
-    its end."""
+    its end. `parameters` names the scene's parameters set apart from its defaults,
+    as for [`diffrax_vi.study.DriftStudy`][]."""
 
     scene: str
     periods: int | float
     dtype: str
     records: list[dict]
+    parameters: str = ""
 
     def table(self) -> str:
+        """The records as a Markdown table, one row per run."""
         return markdown_table(self.records)
 
     def write(self, out: str | pathlib.Path) -> list[pathlib.Path]:
@@ -60,6 +63,7 @@ class WorkPrecision:
             "work_precision",
             self.records,
             scene=self.scene,
+            parameters=self.parameters,
             periods=self.periods,
             dtype=self.dtype,
         )
