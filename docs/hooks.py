@@ -104,6 +104,16 @@ def _results_block(match):
     return f"```text\n{printed}\n```"
 
 
+_INCLUDE = re.compile(r"<!-- include: (\S+) -->")
+
+
+def _markdown_block(match):
+    """A Markdown results file as written (its tables rendered), without its title
+    line."""
+    lines = (RESULTS / match.group(1)).read_text().splitlines()
+    return "\n".join(line for line in lines if not line.startswith("# "))
+
+
 def solvers_table() -> str:
     """`study.SOLVERS`: each name and the solver it makes."""
     from diffrax_vi.study import SOLVERS
@@ -137,6 +147,7 @@ def on_page_markdown(markdown, page, config, files):
     markdown = markdown.replace("<!-- methods-table -->", methods_table())
     markdown = markdown.replace("<!-- solvers-table -->", solvers_table())
     markdown = markdown.replace("<!-- scenes-table -->", scenes_table())
+    markdown = _INCLUDE.sub(_markdown_block, markdown)
     return _RESULTS_FILE.sub(_results_block, markdown)
 
 

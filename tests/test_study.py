@@ -2,6 +2,7 @@ import csv
 import dataclasses
 import json
 import os
+import pathlib
 import re
 import subprocess
 import sys
@@ -23,6 +24,7 @@ from diffrax_vi.study import drift, Method, work_precision
 from .helpers import max_abs_diff
 
 
+ROOT = pathlib.Path(__file__).parent.parent
 ARGS = ["--periods", "2", "--steps-per-period", "50", "--save", "10"]
 
 
@@ -613,6 +615,22 @@ def test_seed_cli_reproduces_the_thesis_ratios(tmp_path):
     assert sum(close) >= 14
     for name in ("figure_5_1", "figure_5_2", "figure_5_3", "figure_1_1_1_2"):
         assert (out / f"{name}.png").read_bytes()[:4] == b"\x89PNG"
+    # The Seed page includes the command's stored output: the same sections.
+    stored = (ROOT / "benchmarks" / "results" / "seed_chapter5.md").read_text()
+    headings = [line for line in text.splitlines() if line.startswith("#")]
+    assert headings == [line for line in stored.splitlines() if line.startswith("#")]
+
+
+def test_seed_page_shows_the_commands_results_file():
+    """The Seed page's Chapter 5 numbers are the file `diffrax-vi seed` wrote,
+    included as written, not retyped; the file holds the thesis's property."""
+    page = (ROOT / "docs" / "seed.md").read_text()
+    assert "<!-- include: seed_chapter5.md -->" in page
+    assert "ours, analytic start" not in page
+    stored = (ROOT / "benchmarks" / "results" / "seed_chapter5.md").read_text()
+    rows = [line for line in stored.splitlines() if "ours, analytic start" in line]
+    ratios = [float(x) for row in rows for x in re.findall(r"\d+\.\d{4}", row)]
+    assert len(ratios) == 16 and sum(abs(r - 4) < 0.15 for r in ratios) >= 14
 
 
 def test_reversible_adaptive_study_is_a_plain_solve_at_the_mean_step():
