@@ -337,3 +337,59 @@ def test_gradients_on_a_lie_group():
         assert abs(change / (2 * eps) - exact) < 1e-9 * jnp.linalg.norm(gradient) * (
             jnp.linalg.norm(d)
         ), (change / (2 * eps), exact)
+
+
+def _oscillator_sum(t0, t1, dt0, ts, k, adjoint, closure=False):
+    args = None if closure else k
+    fn = (
+        (lambda t, q, v, args: 0.5 * v**2 - 0.5 * k * q**2)
+        if closure
+        else (lambda t, q, v, args: 0.5 * v**2 - 0.5 * args * q**2)
+    )
+    sol = dfx.diffeqsolve(
+        dvi.LagrangianTerm(dvi.Lagrangian(fn)),
+        dvi.MidpointVI(),
+        t0,
+        t1,
+        dt0,
+        (jnp.array(1.0), jnp.array(0.0)),
+        args=args,
+        saveat=dfx.SaveAt(ts=ts),
+        adjoint=adjoint,
+        max_steps=64,
+    )
+    return jnp.sum(sol.ys[0])
+
+
+@pytest.mark.parametrize(
+    "index,name", [(0, "t0"), (1, "t1"), (2, "dt0"), (3, r"SaveAt\(ts=...\)")]
+)
+def test_a_derivative_it_does_not_take_is_refused_by_name(index, name):
+    """A derivative with respect to the time grid is refused when traced, naming the
+    argument and the adjoint that takes it (not equinox's 'Unexpected tangent')."""
+    inputs = (0.0, 1.0, 0.1, jnp.array([0.5, 1.0]), 2.0)
+    with pytest.raises(Exception, match=f"not {name}") as caught:
+        jax.grad(_oscillator_sum, argnums=index)(*inputs, dvi.ReversibleAdjoint())
+    assert "RecursiveCheckpointAdjoint" in str(caught.value)
+
+
+def test_a_lagrangian_closing_over_the_parameter_is_differentiated():
+    """A Lagrangian written as a lambda that captures the differentiated array (or a
+    pair of ODETerms that do): the same gradient as checkpointing."""
+    inputs = (0.0, 1.0, 0.1, jnp.array([0.5, 1.0]), 2.0)
+    grad = jax.grad(_oscillator_sum, argnums=4)
+    checkpointed = grad(*inputs, dfx.RecursiveCheckpointAdjoint(), closure=True)
+    reversible = grad(*inputs, dvi.ReversibleAdjoint(), closure=True)
+    assert abs(reversible - checkpointed) < 1e-12 * abs(checkpointed)
+
+    def pair(k, adjoint):
+        f = dfx.ODETerm(lambda t, p, args: p)
+        g = dfx.ODETerm(lambda t, q, args: -k * q)
+        y0 = (jnp.array(1.0), jnp.array(0.0))
+        solver = dvi.StormerVerlet()
+        sol = dfx.diffeqsolve((f, g), solver, 0.0, 1.0, 0.1, y0, adjoint=adjoint)
+        return jnp.sum(sol.ys[0])
+
+    checkpointed = jax.grad(pair)(2.0, dfx.RecursiveCheckpointAdjoint())
+    reversible = jax.grad(pair)(2.0, dvi.ReversibleAdjoint())
+    assert abs(reversible - checkpointed) < 1e-12 * abs(checkpointed)

@@ -25,6 +25,7 @@ import jax.tree_util as jtu
 
 from ._adaptive import ReversibleController, ReversibleState
 from ._force import depends_on_velocity
+from ._lagrangian import Lagrangian
 from ._private_api import (
     clip_to_end,
     is_subsaveat,
@@ -34,6 +35,7 @@ from ._private_api import (
     WrapTerm,
 )
 from ._solver.base import is_symmetric
+from ._space import tangent
 from ._term import LagrangianTerm
 
 
@@ -65,6 +67,66 @@ def _check_forces(terms, t0, y0, args) -> None:
                 "backward steps would amplify round-off without bound. Use "
                 "diffrax.RecursiveCheckpointAdjoint."
             )
+
+
+# What ReversibleAdjoint differentiates: y0, args and the arrays the terms hold.
+NOT_DIFFERENTIATED = (
+    "ReversibleAdjoint differentiates with respect to y0, args and the arrays the "
+    "terms hold, not {name}, and this solve is differentiated with respect to "
+    "{name}. Use diffrax.RecursiveCheckpointAdjoint() for that derivative, or make "
+    "the quantity a parameter in args (a time scale: solve in rescaled time)."
+)
+def _not_differentiated(x, name):
+    return eqxi.nondifferentiable(x, msg=NOT_DIFFERENTIATED.format(name=name))
+
+
+def _hoisted(fn, *example):
+    """`fn`, or, if it closes over an array being differentiated (a lambda that
+    captures it), the same function with that array as one of its leaves
+    (equinox's closure conversion), so that the adjoint differentiates with respect
+    to it as it does to `args`."""
+    if fn is None:
+        return None
+    converted = eqx.filter_closure_convert(fn, *example)
+    if any(isinstance(x, jax.core.Tracer) for x in jtu.tree_leaves(converted)):
+        return converted
+    return fn
+
+
+def _hoist_closures(terms, t0, y, args):
+    """The terms with the user's functions closure-converted where they close over
+    a differentiated array: a `Lagrangian`'s function, the force and the
+    constraint of a `LagrangianTerm`, or the vector fields of a pair of `ODETerm`s
+    (dq/dt = f(t, p), dp/dt = g(t, q))."""
+    q, p = y
+    if isinstance(terms, WrapTerm):  # diffeqsolve's wrapper of every solve's terms
+        return eqx.tree_at(
+            lambda w: w.term, terms, _hoist_closures(terms.term, t0, y, args)
+        )
+    if isinstance(terms, tuple) and all(isinstance(t, WrapTerm) for t in terms):
+        inner = _hoist_closures(tuple(t.term for t in terms), t0, y, args)
+        return tuple(eqx.tree_at(lambda w: w.term, t, i) for t, i in zip(terms, inner))
+    if isinstance(terms, LagrangianTerm):
+        lagrangian = terms.lagrangian
+        v = tangent(lagrangian.space, q)
+        if isinstance(lagrangian, Lagrangian):
+            fn = _hoisted(lagrangian.fn, t0, q, v, args)
+            lagrangian = eqx.tree_at(lambda L: L.fn, lagrangian, fn)
+        force = _hoisted(terms.force, t0, q, v, args)
+        constraint = _hoisted(terms.constraint, t0, q, args)
+        return eqx.tree_at(
+            lambda term: (term.lagrangian, term.force, term.constraint),
+            terms,
+            (lagrangian, force, constraint),
+            is_leaf=lambda x: x is None,
+        )
+    if isinstance(terms, tuple) and all(isinstance(t, dfx.ODETerm) for t in terms):
+        f, g = terms
+        return (
+            dfx.ODETerm(_hoisted(f.vector_field, t0, p, args)),
+            dfx.ODETerm(_hoisted(g.vector_field, t0, q, args)),
+        )
+    return terms
 
 
 class ReversibleAdjoint(dfx.AbstractAdjoint):
@@ -182,6 +244,12 @@ class ReversibleAdjoint(dfx.AbstractAdjoint):
                 "diffrax.RecursiveCheckpointAdjoint."
             )
         _check_forces(terms, t0, init_state.y, args)
+        # The time grid is not differentiated: a derivative with respect to it
+        # would otherwise end in equinox's "Unexpected tangent".
+        t0 = _not_differentiated(t0, "t0")
+        t1 = _not_differentiated(t1, "t1")
+        dt0 = _not_differentiated(dt0, "dt0")
+        saveat = _not_differentiated(saveat, "SaveAt(ts=...)")
         y = init_state.y
         init_state = eqx.tree_at(lambda s: s.y, init_state, object())
         init_state = nondiff_solver_controller_state(
@@ -193,7 +261,7 @@ class ReversibleAdjoint(dfx.AbstractAdjoint):
             lambda s: s.tnext, init_state, replace_fn=lax.stop_gradient
         )
         final_state, aux_stats, _ = _loop_reversible(
-            (y, args, terms, stepsize_controller),
+            (y, args, _hoist_closures(terms, t0, y, args), stepsize_controller),
             self=self,
             solver=solver,
             event=event,
