@@ -683,3 +683,30 @@ def test_cli_scene_parameters(tmp_path, capsys):
     # e = 0.9: the energy is still -1/2, but the fixed step is far off.
     fixed = float(rows["StormerVerlet"]["max_energy_error"])
     assert float(rows["StormerVerlet+Adaptive"]["max_energy_error"]) < fixed / 10
+
+
+def test_work_precision_reference_keeps_the_force_and_the_constraint():
+    """Without an exact solution the reference is Dopri8 on the scene's own term:
+    the Cartesian pendulum stays on its circle and follows the angle pendulum, and
+    the forced Duffing oscillator feels its drive (both against scipy at 1e-12)."""
+    from diffrax_vi.study import reference_state
+    from scipy.integrate import solve_ivp
+
+    t1 = 5.0
+    scene = scenes.cartesian_pendulum()
+    q, _ = reference_state(scene, t1)
+    angle = solve_ivp(
+        lambda t, y: [y[1], -np.sin(y[0])], (0, t1), [2.0, 0.0], rtol=1e-12, atol=1e-12
+    ).y[0, -1]
+    np.testing.assert_allclose(q, [np.sin(angle), -np.cos(angle)], atol=1e-8)
+
+    scene = scenes.forced_duffing()
+    q, p = reference_state(scene, t1)
+    duffing = solve_ivp(
+        lambda t, y: [y[1], -0.3 * y[1] + y[0] - y[0] ** 3 + 0.5 * np.cos(1.2 * t)],
+        (0, t1),
+        [1.0, 0.0],
+        rtol=1e-12,
+        atol=1e-12,
+    ).y[:, -1]
+    np.testing.assert_allclose([q, p], duffing, atol=1e-8)

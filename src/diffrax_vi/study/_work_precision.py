@@ -9,7 +9,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, PyTree
 
-from .._term import LagrangianTerm
 from ..scenes import Scene
 from ._checks import non_empty, step_count, tolerance
 from ._methods import as_method, Method, PIDSteps
@@ -19,17 +18,21 @@ from ._table import markdown_table, write_records
 
 def reference_state(scene: Scene, t1: float) -> PyTree[Array]:
     """The state at `t1` from the scene's default `y0`: its exact solution where it has
-    one, else Dopri8 with a `PIDController` at `rtol = atol = 1e-13` (use float64;
+    one, else Dopri8 on the scene's term (its force and constraint included) with a
+    `PIDController` at `rtol = atol = 1e-13` (use float64;
     for a chaotic scene this is only meaningful over a few Lyapunov times)."""
     if scene.exact is not None:
         return scene.exact(jnp.asarray(t1))
+    # The scene's own term: with its force and constraint (the index-reduced
+    # equations), and its args.
     sol = dfx.diffeqsolve(
-        LagrangianTerm(scene.lagrangian),
+        scene.term(),
         dfx.Dopri8(),
         0.0,
         t1,
         scene.period / 100,
         scene.y0,
+        args=scene.args,
         stepsize_controller=dfx.PIDController(rtol=1e-13, atol=1e-13),
         max_steps=10_000_000,
     )
