@@ -246,6 +246,9 @@ def test_cli_end_to_end(tmp_path, capsys):
             ["drift", "--scene", "forced_duffing", "--solvers", "MidpointVI,KahanLi8"],
             "KahanLi8 integrate(s) partitioned terms",
         ),
+        # Refused when its first step is traced: before any work, with the names
+        # the scene takes.
+        (["drift", "--solvers", "LGVI"], "the scene 'kepler' takes MidpointVI"),
         (["work-precision", "--rtols", "tight"], "--rtols: a tolerance must be a"),
         (["work-precision", "--rtols", ""], "names no value"),
         (["work-precision", "--steps-per-period", "10,-5"], "a count must be"),

@@ -76,6 +76,8 @@ NOT_DIFFERENTIATED = (
     "{name}. Use diffrax.RecursiveCheckpointAdjoint() for that derivative, or make "
     "the quantity a parameter in args (a time scale: solve in rescaled time)."
 )
+
+
 def _not_differentiated(x, name):
     return eqxi.nondifferentiable(x, msg=NOT_DIFFERENTIATED.format(name=name))
 

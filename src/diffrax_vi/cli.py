@@ -94,7 +94,7 @@ def _methods(args: argparse.Namespace, rtol: float, scene):
     try:
         methods = [as_method(name, rtol) for name in names]
         for method in methods:
-            method.terms(scene)
+            _first_step(method, scene)
     except ValueError as e:
         fits = [name for name in SOLVERS if _takes(as_method(name), scene)]
         raise UsageError(
@@ -104,9 +104,25 @@ def _methods(args: argparse.Namespace, rtol: float, scene):
     return methods
 
 
+def _first_step(method, scene) -> None:
+    """Raise the `ValueError` of a method that cannot step the scene: its terms do
+    not fit, or its first step refuses when traced (a method that needs a vector
+    space, or a rigid body), or the study cannot measure what it records (a forced
+    scene's energy balance under partitioned terms). Traced only, nothing
+    compiled."""
+    from .study._drift import check_methods
+
+    check_methods(scene, [method])
+    terms = method.terms(scene)
+    jax.eval_shape(
+        lambda y0: method.solver.init(terms, 0.0, scene.period, y0, scene.args),
+        scene.y0,
+    )
+
+
 def _takes(method, scene) -> bool:
     try:
-        method.terms(scene)
+        _first_step(method, scene)
     except ValueError:
         return False
     return True

@@ -43,6 +43,8 @@ def forced_duffing(
     check_positive("forced_duffing", frequency=frequency)
     return Scene(
         name="forced_duffing",
+        # Partitioned solvers cannot tell the applied force's work apart.
+        solvers=GENERAL_SOLVERS,
         lagrangian=DuffingLagrangian(),
         y0=(jnp.array(1.0), jnp.array(0.0)),
         period=2 * math.pi / frequency,

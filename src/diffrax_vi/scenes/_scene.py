@@ -38,7 +38,8 @@ class Scene(eqx.Module):
     - `solvers`: the names (in `diffrax_vi.study.SOLVERS`, with the suffixes `+PID`
         and `+Adaptive`) of the methods its default study compares, like with like,
         where the command line's general default does not fit the scene (a general
-        Lagrangian, a constraint or a group, which `StormerVerlet` cannot take);
+        Lagrangian, a constraint or a group, which `StormerVerlet` cannot take, or
+        an applied force, whose work its partitioned terms cannot tell apart);
         `None` for the general default.
     """
 
@@ -111,7 +112,8 @@ class Scene(eqx.Module):
 
 
 # The methods a scene's default study compares where StormerVerlet and its
-# compositions do not apply: variational solvers of a LagrangianTerm against
+# compositions do not apply (or, under a force, cannot be measured): variational
+# solvers of a LagrangianTerm against
 # diffrax's Runge-Kutta solvers on the same term, at equal steps and adaptive.
 GENERAL_SOLVERS = (
     "MidpointVI",
