@@ -713,3 +713,40 @@ def test_work_precision_reference_keeps_the_force_and_the_constraint():
         atol=1e-12,
     ).y[:, -1]
     np.testing.assert_allclose([q, p], duffing, atol=1e-8)
+
+
+def _documented_commands() -> list[str]:
+    """Every `diffrax-vi` command the README and the docs show: the lines of their
+    shell blocks (continuations joined) and their inline code."""
+    files = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    shell = re.compile(r"^```(?:bash|sh)\n(.*?)^```", re.S | re.M)
+    commands = []
+    for path in files:
+        text = path.read_text()
+        for block in shell.findall(text):
+            for line in block.replace("\\\n", " ").splitlines():
+                line = line.split("  #")[0]
+                if "diffrax-vi " in line:
+                    commands.append("diffrax-vi " + line.split("diffrax-vi ")[-1])
+        commands += [
+            c for c in re.findall(r"`(diffrax-vi [^`]*)`", text) if "error" not in c
+        ]
+    return sorted(set(" ".join(c.split()) for c in commands))
+
+
+def test_every_documented_command_passes_its_checks(capsys):
+    """Each command the README and the docs show parses, and passes every check its
+    command makes before any work (the scene, its parameters, each method's first
+    step, the study's settings), as typed: none would exit 2."""
+    import _diffrax_vi_cli
+    from diffrax_vi.cli import checked
+
+    commands = _documented_commands()
+    assert len(commands) > 30, commands
+    for command in commands:
+        argv = command.split()[1:]
+        if "--help" in argv:
+            assert _diffrax_vi_cli.main(argv) == 0, command
+            continue
+        args = _diffrax_vi_cli._parser().parse_args(argv)
+        checked(args)

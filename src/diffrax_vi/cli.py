@@ -181,21 +181,43 @@ def _study(call, **kwargs):
         raise UsageError(str(e)) from None
 
 
-def _drift(args: argparse.Namespace) -> int:
-    from .study import check_drift, drift
+def checked(args: argparse.Namespace):
+    """Every check a command makes before any work, on parsed options: the scene
+    with its `--param` values and the methods (each one's first step traced), and
+    the study's settings. Returns `(scene, methods)` (`(None, [])` for `seed`).
 
+    **Raises:** `UsageError` naming the bad option."""
+    from .study import check_drift, check_work_precision
+
+    if args.command == "seed":
+        return None, []
     scene = _scene(args.scene, args.param)
-    methods = _methods(args, args.rtol, scene)
-    _study(
-        check_drift,
-        scene=scene,
-        methods=methods,
-        periods=args.periods,
-        steps_per_period=args.steps_per_period,
-        n_save=args.save,
-        dtype=args.dtype,
-        ensemble=args.ensemble,
-    )
+    if args.command == "drift":
+        methods = _methods(args, args.rtol, scene)
+        _study(
+            check_drift,
+            scene=scene,
+            methods=methods,
+            periods=args.periods,
+            steps_per_period=args.steps_per_period,
+            n_save=args.save,
+            dtype=args.dtype,
+            ensemble=args.ensemble,
+        )
+    else:
+        methods = _methods(args, 1e-8, scene)
+        _study(
+            check_work_precision,
+            periods=args.periods,
+            steps_per_period=args.steps_per_period,
+        )
+    return scene, methods
+
+
+def _drift(args: argparse.Namespace) -> int:
+    from .study import drift
+
+    scene, methods = checked(args)
     out = _out(args, scene.name)
     members = f", ensemble of {args.ensemble}" if args.ensemble else ""
     print(
@@ -221,15 +243,9 @@ def _drift(args: argparse.Namespace) -> int:
 
 
 def _work_precision(args: argparse.Namespace) -> int:
-    from .study import check_work_precision, work_precision
+    from .study import work_precision
 
-    scene = _scene(args.scene, args.param)
-    methods = _methods(args, 1e-8, scene)
-    _study(
-        check_work_precision,
-        periods=args.periods,
-        steps_per_period=args.steps_per_period,
-    )
+    scene, methods = checked(args)
     out = _out(args, scene.name)
     print(f"{scene.name}: {args.periods:g} periods, {args.dtype}", flush=True)
     study = _study(
