@@ -750,3 +750,17 @@ def test_every_documented_command_passes_its_checks(capsys):
             continue
         args = _diffrax_vi_cli._parser().parse_args(argv)
         checked(args)
+
+
+def test_an_interval_without_a_step_holds_the_previous_error():
+    """Dopri8+PID takes fewer steps than there are save intervals: an interval in
+    which no step ended shows the error of the state held through it, never 0 (a
+    log plot's floor, and a first tenth of zeros made the growth meaningless)."""
+    study = drift(kepler(), ["Dopri8+PID"], periods=2, steps_per_period=200, n_save=400)
+    run = study.runs[0]
+    assert run.steps < 400
+    errors = run.errors["energy"][1:]
+    assert np.all(errors > 0), errors
+    # Each interval's value is a step's error: the distinct values are at most the
+    # steps taken.
+    assert len(np.unique(errors)) <= run.steps

@@ -36,7 +36,9 @@ class DriftRun:
     - `ts`: the start and the ends of the `n_save` intervals.
     - `errors`: invariant name -> the largest `|I(t) - I(0)|` over the steps in the
         interval ending at each of `ts` (0 at the start; the largest component of a
-        vector invariant; the worst ensemble member; NaN after a failure).
+        vector invariant; the worst ensemble member; NaN after a failure). An
+        interval in which no step ended (an adaptive step longer than it) repeats
+        the previous interval's value, the error of the state held through it.
     - `symplectic`: a symplectic method at the study's fixed step.
     - `reversible`: a symmetric method stepped by a
         [`diffrax_vi.ReversibleController`][] (`+Adaptive`).

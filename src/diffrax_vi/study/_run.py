@@ -175,18 +175,28 @@ class _Solves(eqx.Module):
             # diffrax's own step counters made XLA copy the per-interval maxima at
             # every step.
             taken = worst.steps + sol.stats["num_rejected_steps"]
+
+        # An interval in which no step ended (an adaptive step longer than it)
+        # holds the error of the state the method held through it: the previous
+        # interval's.
+        def fill(previous, row):
+            row = jnp.where(row == -jnp.inf, previous, row)
+            return row, row
+
+        _, errors = jax.lax.scan(fill, jnp.zeros_like(worst.errors[0]), worst.errors)
+
         final = jax.tree.map(lambda x: x[-1], sol.ys)
         # diffrax's Runge-Kutta solvers do not check fixed steps for NaN: a blow-up
         # would otherwise be tabled as a success.
         result = dfx.RESULTS.where(
-            (sol.result == dfx.RESULTS.successful) & ~all_finite((worst.errors, final)),
+            (sol.result == dfx.RESULTS.successful) & ~all_finite((errors, final)),
             dfx.RESULTS.nonfinite,
             sol.result,
         )
         # Intervals the solve did not reach, after a failure, have no errors.
         reached = self.ts[1:] <= t_reached
         ok = result == dfx.RESULTS.successful
-        kept = jnp.where((ok | reached)[:, None], worst.errors, jnp.nan)
+        kept = jnp.where((ok | reached)[:, None], errors, jnp.nan)
         kept = jnp.concatenate([jnp.zeros_like(kept[:1]), kept])
         errors = {k: kept[:, i] for i, k in enumerate(solver.names)}
         return errors, final, taken, result

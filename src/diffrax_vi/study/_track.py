@@ -16,8 +16,8 @@ from .._term import LagrangianTerm
 
 class Worst(eqx.Module):
     """The largest error of each conserved quantity (columns, in the order of
-    `TrackWorstError.names`) in each save interval so far (rows), and the number of
-    steps taken.
+    `TrackWorstError.names`) in each save interval so far (rows; `-inf` where no
+    step has ended in the interval yet), and the number of steps taken.
 
     One array, not one per quantity: with two buffers in the loop state XLA stopped
     updating them in place, which cost a Störmer–Verlet step many times its own
@@ -136,7 +136,8 @@ class TrackWorstError(dfx.AbstractWrappedSolver):
         if self.balance is not None:
             starts.append(self.balance.start)
         dtype = jnp.result_type(*starts)
-        errors = jnp.zeros((self.boundaries.shape[0], len(self.names)), dtype)
+        shape = (self.boundaries.shape[0], len(self.names))
+        errors = jnp.full(shape, -jnp.inf, dtype)
         work = None if self.balance is None else jnp.zeros((), dtype)
         worst = Worst(errors, jnp.zeros((), jnp.int32), work)
         return Tracked(self.solver.init(terms, t0, t1, y0, args), worst)
