@@ -1,0 +1,116 @@
+"""The first call of a solve: tracing and compiling, each against Tsit5's on the same
+term, and each gradient against its forward solve.
+
+Every case runs in a fresh process (as a user's first call does, with no trace
+cached by an earlier case): `jax.jit(solve).trace(y0)` is timed as the tracing,
+`.lower()` and `.compile()` of the traced program as the compilation. A solve is a
+`diffeqsolve` over 100 steps saving only `t1`; a gradient is `jax.grad` of the sum
+of its final state with respect to `y0`, under `RecursiveCheckpointAdjoint` and
+`ReversibleAdjoint`. A trivial program is compiled first, so that the backend's
+start-up is not charged to the case.
+
+Run: `python benchmarks/first_call.py` (recorded: `results/first_call_cpu.txt`).
+"""
+
+import json
+import subprocess
+import sys
+
+
+# (scene, its variational solvers); Tsit5 runs on the same term for each scene.
+SCENES = [
+    ("kepler", ["MidpointVI"]),
+    ("double_pendulum", ["TrapezoidalVI"]),
+    ("free_rigid_body", ["MidpointVI", "LGVI"]),
+    ("heavy_top", ["LGVI"]),
+    ("four_bar", ["MidpointVI"]),
+]
+
+CASE = """
+import json, sys, time
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+jax.config.update("jax_enable_x64", True)
+import diffrax_vi as dvi
+from diffrax_vi.study import make_solver
+
+scene_name, solver_name, adjoint = sys.argv[1:]
+scene = dvi.scenes.SCENES[scene_name]()
+solver = make_solver(solver_name)
+term = scene.term()
+adjoints = {
+    "none": dfx.RecursiveCheckpointAdjoint(),
+    "checkpoint": dfx.RecursiveCheckpointAdjoint(),
+    "reversible": dvi.ReversibleAdjoint(),
+}
+
+
+def solve(y0):
+    sol = dfx.diffeqsolve(
+        term, solver, 0.0, scene.period, scene.period / 100, y0, args=scene.args,
+        saveat=dfx.SaveAt(t1=True), adjoint=adjoints[adjoint], max_steps=128,
+    )
+    return sol.ys
+
+
+fn = solve
+if adjoint != "none":
+    fn = jax.grad(lambda y0: sum(jnp.sum(x) for x in jax.tree.leaves(solve(y0))))
+jax.jit(lambda x: x + 1).lower(jnp.zeros(())).compile()
+start = time.perf_counter()
+traced = jax.jit(fn).trace(scene.y0)
+lowered_at = time.perf_counter()
+lowered = traced.lower()
+compiled_at = time.perf_counter()
+lowered.compile()
+end = time.perf_counter()
+print(json.dumps(dict(trace=lowered_at - start, lower=compiled_at - lowered_at,
+                      compile=end - compiled_at)))
+"""
+
+
+def measure(scene: str, solver: str, adjoint: str) -> dict:
+    done = subprocess.run(
+        [sys.executable, "-c", CASE, scene, solver, adjoint],
+        capture_output=True,
+        text=True,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    print("First call: trace, lower and compile, seconds; fresh process per case")
+    print(
+        f"{'scene':<16} {'solver':<14} {'trace':>6} {'lower':>6} {'compile':>7} "
+        f"{'total':>6}  vs Tsit5 (trace, total)  grad/forward (checkpoint, reversible)"
+    )
+    for scene, solvers in SCENES:
+        tsit5 = measure(scene, "Tsit5", "none")
+        t_total = sum(tsit5.values())
+        print(
+            f"{scene:<16} {'Tsit5':<14} {tsit5['trace']:6.2f} {tsit5['lower']:6.2f} "
+            f"{tsit5['compile']:7.2f} {t_total:6.2f}"
+        )
+        for solver in solvers:
+            ours = measure(scene, solver, "none")
+            total = sum(ours.values())
+            grads = [
+                sum(measure(scene, solver, a).values()) / total
+                for a in ("checkpoint", "reversible")
+            ]
+            print(
+                f"{scene:<16} {solver:<14} {ours['trace']:6.2f} {ours['lower']:6.2f} "
+                f"{ours['compile']:7.2f} {total:6.2f}  "
+                f"{ours['trace'] / tsit5['trace']:5.2f}x {total / t_total:5.2f}x"
+                f"            {grads[0]:5.2f}x {grads[1]:5.2f}x"
+            )
+    print(
+        "targets: a variational solve's trace + compile <= 1.5x Tsit5's on the same "
+        "term (constrained <= 2x); a gradient's <= 2.5x its forward solve's"
+    )
+
+
+if __name__ == "__main__":
+    main()
