@@ -46,10 +46,9 @@ def small_loop_flag(threshold_bytes: int) -> str:
     return f"{_EXTRA}{_OPTION}={threshold_bytes}"
 
 
-def _with_threshold(flags: str, threshold_bytes: int) -> str:
+def _with_entry(flags: str, entry: str) -> str:
     # XLA takes one set of backend options: join an existing one rather than add a
     # second flag, which would replace it.
-    entry = f"{_OPTION}={threshold_bytes}"
     match = re.search(rf"{_EXTRA}(\S+)", flags)
     if match is None:
         return f"{flags} {_EXTRA}{entry}".strip()
@@ -120,8 +119,9 @@ def compile_small_loops_whole(threshold_bytes: int = SMALL_LOOP_BYTES) -> bool:
             "compile_small_loops_whole()",
             f"set the environment variable XLA_FLAGS={flag}",
         )
-    os.environ["XLA_FLAGS"] = _with_threshold(_without_ours(flags), threshold_bytes)
+    flags = _without_ours(flags)
     _ours = f"{_OPTION}={threshold_bytes}"
+    os.environ["XLA_FLAGS"] = _with_entry(flags, _ours)
     return True
 
 

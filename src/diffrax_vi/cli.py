@@ -163,7 +163,11 @@ def _out(args: argparse.Namespace, scene: str) -> pathlib.Path:
     return out
 
 
-def _report(study, out: pathlib.Path, verdict: str | None = None) -> int:
+def _report(
+    args: argparse.Namespace, study, out: pathlib.Path, verdict: str | None = None
+) -> int:
+    """Print the study and write it into `out`, titled with the `--param` values."""
+    study = dataclasses.replace(study, parameters=", ".join(args.param))
     print(study.table())
     if verdict is not None:
         print(verdict)
@@ -238,8 +242,7 @@ def _drift(args: argparse.Namespace) -> int:
         spread=args.spread,
         progress=args.progress,
     )
-    study = dataclasses.replace(study, parameters=", ".join(args.param))
-    return _report(study, out, study.verdict())
+    return _report(args, study, out, study.verdict())
 
 
 def _work_precision(args: argparse.Namespace) -> int:
@@ -257,8 +260,7 @@ def _work_precision(args: argparse.Namespace) -> int:
         rtols=args.rtols,
         dtype=args.dtype,
     )
-    study = dataclasses.replace(study, parameters=", ".join(args.param))
-    return _report(study, out)
+    return _report(args, study, out)
 
 
 def _seed(args: argparse.Namespace) -> int:
