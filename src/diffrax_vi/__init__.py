@@ -14,8 +14,15 @@ from ._discrete import (
     MidpointRule as MidpointRule,
     TrapezoidalRule as TrapezoidalRule,
 )
+from ._joints import (
+    BallJoint as BallJoint,
+    HingeJoint as HingeJoint,
+    Joints as Joints,
+    joints as joints,
+)
 from ._lagrangian import (
     AbstractLagrangian as AbstractLagrangian,
+    AbstractMultibodyLagrangian as AbstractMultibodyLagrangian,
     AbstractQuadraticLagrangian as AbstractQuadraticLagrangian,
     AbstractRigidBodyLagrangian as AbstractRigidBodyLagrangian,
     AbstractSeparableLagrangian as AbstractSeparableLagrangian,

@@ -7,8 +7,17 @@ state lives on a submanifold of phase space of dimension $2(n - m)$. The constra
 forces $-G^\top\lambda$ keep it there (Marsden & West (2001), §3.5; Hairer, Lubich &
 Wanner (2006), VII.1).
 
+On a Lie group (a Lagrangian whose `space` is [`diffrax_vi.SO3`][], or a product
+with one) $G$ is taken along the space's tangent directions, left-trivialised:
+$G\eta = \frac{d}{ds} g(q \oplus s\eta)|_{s=0}$, so that $G\xi$ is $\dot g$ for
+the body velocity $\xi$ and a multiplier acts through $G^\top\lambda$ as a force
+and a body torque in the dual algebra, where the momentum lives (Leyendecker,
+Marsden & Ortiz (2008); Lee, Leok & McClamroch (2005)). In a vector space this is
+the usual Jacobian.
+
 Every tolerance here is relative to the terms the equation balances (for $g$, the
-linearised sizes $|G|\,|q|$), so that it does not depend on the units.
+linearised sizes $|G|\,|q|$, with an angle counted as 1), so that it does not
+depend on the units.
 """
 
 from collections.abc import Callable
@@ -26,6 +35,7 @@ from ._custom_types import Args, P, Q, RealScalarLike
 from ._lagrangian import (
     AbstractSeparableLagrangian,
     broadcast_mass,
+    constant_mass,
     inverse_legendre,
     legendre_residual,
     momentum,
@@ -39,6 +49,14 @@ from ._linear import (
 )
 from ._misc import all_finite, split_state, state_dtype
 from ._root_finders import Newton, solve
+from ._space import (
+    is_euclidean,
+    retract,
+    scale as space_scale,
+    tangent,
+    tangent_line,
+    velocity as space_velocity,
+)
 from ._tolerance import (
     newton_is_dense,
     newton_tolerance,
@@ -76,30 +94,43 @@ def constraint_values(
     return jnp.concatenate([jnp.ravel(x).astype(dtype) for x in leaves])
 
 
+def _along(constraint, t, q: Q, args: Args, space) -> tuple[Callable, PyTree]:
+    """`g` as a function of a tangent increment at `q` (the position itself in a
+    vector space; along the tangent line $q + \\dot q(\\eta)$ on a group, equal to
+    $q \\oplus \\eta$ to first order), and the point to differentiate it at."""
+    if space is None or is_euclidean(space):
+        return (lambda x: constraint_values(constraint, t, x, args)), q
+    return (
+        lambda eta: constraint_values(constraint, t, tangent_line(space, q, eta), args)
+    ), tangent(space, q)
+
+
 def constraint_jacobian(
-    constraint: Callable[..., PyTree], t: RealScalarLike, q: Q, args: Args
+    constraint: Callable[..., PyTree], t: RealScalarLike, q: Q, args: Args, space=None
 ) -> Float[Array, "m n"]:
     """$G = \\partial g / \\partial q$ as a dense `(m, n)` matrix over the flattened
-    positions (one reverse pass per constraint)."""
-    flat, unravel = jax.flatten_util.ravel_pytree(q)
-    return jax.jacrev(lambda x: constraint_values(constraint, t, unravel(x), args))(
-        flat
-    )
+    tangent directions of `space` (`None`: a vector space, `n` the size of `q`),
+    one reverse pass per constraint."""
+    fn, at = _along(constraint, t, q, args, space)
+    flat, unravel = jax.flatten_util.ravel_pytree(at)
+    return jax.jacrev(lambda x: fn(unravel(x)))(flat)
 
 
 def transpose_product(
-    constraint: Callable[..., PyTree], t: RealScalarLike, q: Q, args: Args
+    constraint: Callable[..., PyTree], t: RealScalarLike, q: Q, args: Args, space=None
 ) -> Callable[[Array], P]:
-    """`lam -> G(q)^T lam`, a generalised force with the structure of `q`."""
-    _, vjp = jax.vjp(lambda x: constraint_values(constraint, t, x, args), q)
+    """`lam -> G(q)^T lam`, a generalised force with the structure of a momentum
+    (of `q` in a vector space)."""
+    fn, at = _along(constraint, t, q, args, space)
+    _, vjp = jax.vjp(fn, at)
     return lambda lam: vjp(lam)[0]
 
 
-def constraint_scale(jacobian: Array, q: Q) -> Float[Array, " m"]:
+def constraint_scale(jacobian: Array, q: Q, space=None) -> Float[Array, " m"]:
     """$|G|\\,|q|$: the size of the terms a constraint value balances, to which its
-    residual is compared."""
-    flat = jax.flatten_util.ravel_pytree(q)[0]
-    return jnp.abs(jacobian) @ jnp.abs(flat)
+    residual is compared (on a group, an angle counts as 1: `AbstractSpace.scale`)."""
+    size = q if space is None else space_scale(space, q)
+    return jnp.abs(jacobian) @ jnp.abs(_flat(size))
 
 
 def _flat(tree: PyTree) -> Array:
@@ -167,9 +198,10 @@ def project_momentum(
     the implicit derivative of that root is a linear solve that raises on a NaN
     state instead of letting the step report `nonfinite`."""
     g = term.constraint
-    jacobian = constraint_jacobian(g, t, q, args)
+    space = term.lagrangian.space
+    jacobian = constraint_jacobian(g, t, q, args, space)
     rate = constraint_rate(g, t, q, args)
-    push = transpose_product(g, t, q, args)
+    push = transpose_product(g, t, q, args, space)
     m = jacobian.shape[0]
     mu0 = jnp.zeros((m,), state_dtype(p))
 
@@ -231,8 +263,9 @@ def project_onto_constraints(
     state nearest to `y0` with $g(t_0, q) = 0$ and $G(q)\,v(q, p) = 0$.
 
     The positions move along the constraint normals at `q0`,
-    $q = q_0 + G(q_0)^\top\lambda$, with $\lambda$ from Newton's method on
-    $g(q) = 0$ (to first order the Euclidean projection); the momentum is then
+    $q = q_0 \oplus G(q_0)^\top\lambda$ ($q_0 + G^\top\lambda$ in a vector
+    space), with $\lambda$ from Newton's method on $g(q) = 0$ (to first order the
+    Euclidean projection); the momentum is then
     projected onto the hidden constraint, $p = p_0 - G(q)^\top\mu$ (the projection of
     the velocity in the metric $\partial^2 L/\partial v^2$).
 
@@ -256,18 +289,19 @@ def project_onto_constraints(
             "project_onto_constraints needs a LagrangianTerm with a constraint: "
             "`LagrangianTerm(L, constraint=g)`."
         )
-    q0, p0 = split_state(y0)
+    space = term.lagrangian.space
+    q0, p0 = split_state(y0, "y0", space)
     g = term.constraint
-    push = transpose_product(g, t0, q0, args)
-    jacobian0 = constraint_jacobian(g, t0, q0, args)
+    push = transpose_product(g, t0, q0, args, space)
+    jacobian0 = constraint_jacobian(g, t0, q0, args, space)
     m = jacobian0.shape[0]
 
     def moved(lam):
-        return jtu.tree_map(lambda a, b: a + b, q0, push(lam))
+        return retract(space, q0, push(lam))
 
     def residual(lam):
         q = moved(lam)
-        return constraint_values(g, t0, q, args), constraint_scale(jacobian0, q)
+        return constraint_values(g, t0, q, args), constraint_scale(jacobian0, q, space)
 
     solved = solve(residual, jnp.zeros((m,), state_dtype(q0)), Newton(), 32)
     q = moved(solved.value)
@@ -305,17 +339,26 @@ def check_start(
     """`value`, or an error if the start is off the constraint manifold (beyond
     $\\sqrt{\\varepsilon}$ relative) or the constraint Jacobian loses rank there."""
     g = term.constraint
-    jacobian = constraint_jacobian(g, t, q, args)
+    space = term.lagrangian.space
+    jacobian = constraint_jacobian(g, t, q, args, space)
     values = constraint_values(g, t, q, args)
     tol = newton_tolerance(state_dtype(q))
     hidden = hidden_constraint(jacobian, v, constraint_rate(g, t, q, args))
-    off = (scaled_norm(values, constraint_scale(jacobian, q)) > tol) | (
+    off = (scaled_norm(values, constraint_scale(jacobian, q, space)) > tol) | (
         scaled_norm(*hidden) > tol
     )
     finite = all_finite((values, jacobian))
     value = eqx.error_if(value, ~finite & all_finite(q), NON_FINITE_CONSTRAINT)
     value = eqx.error_if(value, ~rank_ok(jacobian) & finite, RANK_DEFICIENT)
     return eqx.error_if(value, off & all_finite((q, p, v)), OFF_MANIFOLD)
+
+
+def _lu_solve(matrix: Array, b: Array) -> tuple[Array, Array]:
+    """lineax's LU solve of a system too large to unroll, with the pivot ratio
+    `unrolled_lu_solve` returns (zero where the solve failed)."""
+    solution = lx.linear_solve(lx.MatrixLinearOperator(matrix), b, lx.LU(), throw=False)
+    ok = solution.result == lx.RESULTS.successful
+    return solution.value, jnp.where(ok, jnp.ones((), b.dtype), jnp.zeros((), b.dtype))
 
 
 def multiplier_force(
@@ -329,32 +372,49 @@ def multiplier_force(
     With $W = (\partial^2 L/\partial v^2)^{-1}$, $\dot v = W(\dot p - m)$ where $m$
     is the derivative of $\partial L/\partial v$ along $(\dot t, \dot q) = (1, v)$,
     so $(G W G^\top)\lambda = G W (f - m) + c$ with $c$ the second derivative of $g$
-    along $(1, v)$. Only forward linear solves (no derivative of a solve is taken,
-    whose tangent solves lineax always checks), and a `RESULTS.singular` where
-    $G W G^\top$ cannot be solved (a Jacobian losing rank)."""
+    along $(1, v)$. On a group $v$ is the body velocity $\xi$, $G$ is
+    left-trivialised, and both derivatives follow $\dot q = q\hat\xi$. With a
+    declared constant mass $W = M^{-1}$ and $m = 0$. Only forward linear solves (no
+    derivative of a solve is taken, whose tangent solves lineax always checks), and
+    a `RESULTS.singular` where $G W G^\top$ cannot be solved (a Jacobian losing
+    rank)."""
     g = term.constraint
     lagrangian = term.lagrangian
+    space = lagrangian.space
     dtype = state_dtype(q)
     t = jnp.asarray(t, dtype)
     one = jnp.ones((), dtype)
     flat_v, unravel = jax.flatten_util.ravel_pytree(v)
+
+    # How q moves at the velocity v (v itself in a vector space, q v^ on SO(3)).
+    moving = lambda q_: space_velocity(space, q_, v)
+    jacobian = constraint_jacobian(g, t, q, args, space)
+
+    def rate(t_, q_):
+        return jax.jvp(
+            lambda s, x: constraint_values(g, s, x, args), (t_, q_), (one, moving(q_))
+        )[1]
+
+    curvature = jax.jvp(rate, (t, q), (one, moving(q)))[1]
+    n, m = flat_v.shape[0], jacobian.shape[0]
+    mass = constant_mass(lagrangian, v)
+    if mass is not None:
+        # A declared constant mass: W = M^-1, and dL/dv = M v reads neither t nor q.
+        inverse = 1 / _flat(mass)
+        w_gt, w_f = jacobian.T * inverse[:, None], _flat(force) * inverse
+        solve_reduced = unrolled_lu_solve if newton_is_dense(m) else _lu_solve
+        lam, reduced_ratio = solve_reduced(jacobian @ w_gt, jacobian @ w_f + curvature)
+        ok = ~(reduced_ratio <= singular_threshold(m, dtype)) & all_finite(lam)
+        result = dfx.RESULTS.where(ok, dfx.RESULTS.successful, dfx.RESULTS.singular)
+        return unravel(-jacobian.T @ lam), result
 
     def dl_dv(t_, q_, v_):
         return _flat(momentum(lagrangian, t_, q_, v_, args))
 
     # W applied to the columns of G^T and to f - m.
     hessian = jax.jacfwd(lambda x: dl_dv(t, q, unravel(x)))(flat_v)
-    mixed = jax.jvp(lambda t_, q_: dl_dv(t_, q_, v), (t, q), (one, v))[1]
-    jacobian = constraint_jacobian(g, t, q, args)
+    mixed = jax.jvp(lambda t_, q_: dl_dv(t_, q_, v), (t, q), (one, moving(q)))[1]
     rhs = jnp.concatenate([jacobian.T, (_flat(force) - mixed)[:, None]], axis=1)
-
-    def rate(t_, q_):
-        return jax.jvp(
-            lambda s, x: constraint_values(g, s, x, args), (t_, q_), (one, v)
-        )[1]
-
-    curvature = jax.jvp(rate, (t, q), (one, v))[1]
-    n, m = hessian.shape[0], jacobian.shape[0]
     if newton_is_dense(n) and newton_is_dense(m):
         # Unrolled eliminations, not LAPACK's: this runs in a Runge-Kutta solver's
         # vector field, inside its time-stepping loop, which a LAPACK call would
@@ -386,4 +446,4 @@ def multiplier_force(
             solved.result == lx.RESULTS.successful
         )
     result = dfx.RESULTS.where(ok, dfx.RESULTS.successful, dfx.RESULTS.singular)
-    return jax.flatten_util.ravel_pytree(q)[1](-jacobian.T @ lam), result
+    return unravel(-jacobian.T @ lam), result

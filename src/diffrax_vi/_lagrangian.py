@@ -158,14 +158,68 @@ class AbstractRigidBodyLagrangian(AbstractQuadraticLagrangian):
         return 0.5 * jnp.sum(self.inertia * v**2) - self.potential(t, q, args)
 
 
+class AbstractMultibodyLagrangian(AbstractQuadraticLagrangian):
+    r"""Abstract base class for $n$ rigid bodies, each with its centre of mass
+    $x_i \in \mathbb R^3$ and attitude $R_i \in SO(3)$, constant masses $m_i$ and
+    principal moments of inertia $J_i$:
+
+    $$L = \sum_i \tfrac12 m_i|\dot x_i|^2 + \tfrac12\Omega_i^\top J_i\Omega_i
+    - V(t, q, \text{args}).$$
+
+    The position is `q = (x, R)`, shapes `(n, 3)` and `(n, 3, 3)` (space
+    `(Euclidean(), SO3())`, $(\mathbb R^3)^n \times SO(3)^n$), the velocity
+    `(xdot, Omega)` and the momentum `(m xdot, J Omega)`, both of shapes
+    `((n, 3), (n, 3))`, Omega the body angular velocities. The velocity map is a
+    division, settled when the term is built. Joints between the bodies are
+    holonomic constraints on `q` ([`diffrax_vi.BallJoint`][],
+    [`diffrax_vi.HingeJoint`][]).
+
+    Subclasses implement `potential` and define `mass`, shape `(n,)`, and
+    `inertia`, shape `(n, 3)`.
+    """
+
+    mass: eqx.AbstractVar[ArrayLike]
+    inertia: eqx.AbstractVar[ArrayLike]
+    space: ClassVar[PyTree[AbstractSpace]] = (Euclidean(), SO3())
+
+    @abc.abstractmethod
+    def potential(self, t: RealScalarLike, q: Q, args: Args) -> Scalar:
+        """The potential energy $V(t, q, \text{args})$, `q = (x, R)`, a scalar."""
+
+    def __call__(self, t: RealScalarLike, q: Q, v: V, args: Args) -> Scalar:
+        xdot, omega = v
+        mass = jnp.asarray(self.mass)[..., None]
+        kinetic = jnp.sum(mass * xdot**2) + jnp.sum(self.inertia * omega**2)
+        return 0.5 * kinetic - self.potential(t, q, args)
+
+
+def declared_mass(lagrangian: AbstractLagrangian) -> PyTree[ArrayLike] | None:
+    """The constant diagonal mass a Lagrangian declares, as declared (the `mass` of a
+    separable Lagrangian, the `inertia` of a rigid body, both of bodies), or `None`
+    for a Lagrangian that declares none."""
+    if isinstance(lagrangian, AbstractSeparableLagrangian):
+        return lagrangian.mass
+    if isinstance(lagrangian, AbstractRigidBodyLagrangian):
+        return lagrangian.inertia
+    if isinstance(lagrangian, AbstractMultibodyLagrangian):
+        return (lagrangian.mass, lagrangian.inertia)
+    return None
+
+
 def constant_mass(lagrangian: AbstractLagrangian, p: P) -> P | None:
-    """The constant diagonal mass that a Lagrangian declares, with the structure of
-    `p` (the `mass` of a separable Lagrangian, the `inertia` of a rigid body), or
-    `None` for a Lagrangian that declares none."""
+    """The constant diagonal mass that a Lagrangian declares (`declared_mass`), with
+    the structure of `p`, or `None` for a Lagrangian that declares none."""
     if isinstance(lagrangian, AbstractSeparableLagrangian):
         return broadcast_mass(lagrangian.mass, p)
     if isinstance(lagrangian, AbstractRigidBodyLagrangian):
         return jnp.broadcast_to(jnp.asarray(lagrangian.inertia), jnp.shape(p))
+    if isinstance(lagrangian, AbstractMultibodyLagrangian):
+        p_x, p_r = p
+        mass = jnp.asarray(lagrangian.mass)[..., None]
+        return (
+            jnp.broadcast_to(mass, jnp.shape(p_x)),
+            jnp.broadcast_to(jnp.asarray(lagrangian.inertia), jnp.shape(p_r)),
+        )
     return None
 
 

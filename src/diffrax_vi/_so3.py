@@ -10,69 +10,85 @@ from jaxtyping import Array, Float
 from ._space import AbstractSpace
 
 
-def hat(omega: Float[Array, " 3"]) -> Float[Array, "3 3"]:
-    r"""$\hat\omega$, the skew matrix with $\hat\omega u = \omega \times u$."""
-    x, y, z = omega[0], omega[1], omega[2]
+def hat(omega: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+    r"""$\hat\omega$, the skew matrix with $\hat\omega u = \omega \times u$ (of each
+    vector of a stack)."""
+    x, y, z = omega[..., 0], omega[..., 1], omega[..., 2]
     zero = jnp.zeros_like(x)
     return jnp.stack(
         [
-            jnp.stack([zero, -z, y]),
-            jnp.stack([z, zero, -x]),
-            jnp.stack([-y, x, zero]),
-        ]
+            jnp.stack([zero, -z, y], axis=-1),
+            jnp.stack([z, zero, -x], axis=-1),
+            jnp.stack([-y, x, zero], axis=-1),
+        ],
+        axis=-2,
     )
 
 
-def vee(skew: Float[Array, "3 3"]) -> Float[Array, " 3"]:
+def vee(skew: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     """The vector of a skew matrix (of its skew part), the inverse of `hat`."""
     return 0.5 * jnp.stack(
-        [skew[2, 1] - skew[1, 2], skew[0, 2] - skew[2, 0], skew[1, 0] - skew[0, 1]]
+        [
+            skew[..., 2, 1] - skew[..., 1, 2],
+            skew[..., 0, 2] - skew[..., 2, 0],
+            skew[..., 1, 0] - skew[..., 0, 1],
+        ],
+        axis=-1,
     )
 
 
-def matmul(a: Float[Array, "n k"], b: Float[Array, "k m"]) -> Float[Array, "n m"]:
-    """`a @ b` as elementwise products and a sum: a `dot_general` of small matrices
-    can become a custom fusion that keeps XLA from compiling a loop whole
-    (`diagnostics.loop_breakers`)."""
-    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+def matmul(
+    a: Float[Array, "*batch n k"], b: Float[Array, "*batch k m"]
+) -> Float[Array, "*batch n m"]:
+    """`a @ b` (of each pair of a stack) as elementwise products and a sum: a
+    `dot_general` of small matrices can become a custom fusion that keeps XLA from
+    compiling a loop whole (`diagnostics.loop_breakers`)."""
+    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
-def matvec(a: Float[Array, "3 3"], x: Float[Array, " 3"]) -> Float[Array, " 3"]:
+def matvec(a: Float[Array, "*batch 3 3"], x: Float[Array, "*batch 3"]) -> Array:
     """`a @ x`, written out as `matmul` is."""
-    return jnp.sum(a * x[None, :], axis=1)
+    return jnp.sum(a * x[..., None, :], axis=-1)
 
 
-def rmatvec(a: Float[Array, "3 3"], x: Float[Array, " 3"]) -> Float[Array, " 3"]:
+def rmatvec(a: Float[Array, "*batch 3 3"], x: Float[Array, "*batch 3"]) -> Array:
     """`a.T @ x`, written out as `matmul` is."""
-    return jnp.sum(a * x[:, None], axis=0)
+    return jnp.sum(a * x[..., :, None], axis=-2)
 
 
-def rotation_departure(R: Float[Array, "n n"]) -> Float[Array, ""]:
-    r"""How far `R` is from a rotation, a pure number: the largest entry of
-    $|R^\top R - I|$, or at least 2 for a reflection ($\det R < 0$), which no
-    rotation is near."""
-    off = jnp.max(jnp.abs(matmul(R.T, R) - jnp.eye(R.shape[0], dtype=R.dtype)))
-    if R.shape == (2, 2):
-        det = R[0, 0] * R[1, 1] - R[0, 1] * R[1, 0]
+def transpose(a: Float[Array, "*batch n m"]) -> Float[Array, "*batch m n"]:
+    return jnp.swapaxes(a, -1, -2)
+
+
+def rotation_departure(R: Float[Array, "*batch n n"]) -> Float[Array, ""]:
+    r"""How far `R` (or the farthest matrix of a stack) is from a rotation, a pure
+    number: the largest entry of $|R^\top R - I|$, or at least 2 for a reflection
+    ($\det R < 0$), which no rotation is near."""
+    eye = jnp.broadcast_to(jnp.eye(R.shape[-1], dtype=R.dtype), R.shape)
+    off = jnp.max(jnp.abs(matmul(transpose(R), R) - eye), axis=(-2, -1))
+    if R.shape[-2:] == (2, 2):
+        det = R[..., 0, 0] * R[..., 1, 1] - R[..., 0, 1] * R[..., 1, 0]
     else:
-        det = jnp.dot(R[0], jnp.cross(R[1], R[2]))
-    return jnp.where(det < 0, jnp.maximum(off, 2.0), off)
+        det = jnp.sum(R[..., 0, :] * jnp.cross(R[..., 1, :], R[..., 2, :]), axis=-1)
+    return jnp.max(jnp.where(det < 0, jnp.maximum(off, 2.0), off))
 
 
-def _exp(x: Float[Array, " 3"]) -> Float[Array, "3 3"]:
+def _exp(x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     return jaxlie.SO3.exp(x).as_matrix()
 
 
-def _log(F: Float[Array, "3 3"]) -> Float[Array, " 3"]:
+def _log(F: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     return jaxlie.SO3.from_matrix(F).log()
 
 
-def _exp_pull(x: Float[Array, " 3"], w: Float[Array, " 3"]) -> Float[Array, " 3"]:
+def _exp_pull(
+    x: Float[Array, "*batch 3"], w: Float[Array, "*batch 3"]
+) -> Float[Array, "*batch 3"]:
     # d tau^R_x is the left Jacobian J(x) = I + a x^ + b x^2 of SO(3)
     # (D exp(x)[y] exp(x)^T = hat(J(x) y)), and J(x)^T = J(-x). Below |x| = 1e-2
     # the series, whose next terms are below 1e-17; 1 - cos t as 2 sin^2(t/2)
     # so that nothing cancels above.
-    t2 = jnp.sum(x**2)
+    t2 = jnp.sum(x**2, axis=-1, keepdims=True)
     small = t2 < 1e-4
     safe = jnp.where(small, jnp.ones_like(t2), t2)
     t = jnp.sqrt(safe)
@@ -82,35 +98,43 @@ def _exp_pull(x: Float[Array, " 3"], w: Float[Array, " 3"]) -> Float[Array, " 3"
     return w - a * xw + b * jnp.cross(x, xw)
 
 
-def _exp_transport(x: Float[Array, " 3"], w: Float[Array, " 3"]) -> Float[Array, " 3"]:
+def _exp_transport(
+    x: Float[Array, "*batch 3"], w: Float[Array, "*batch 3"]
+) -> Float[Array, "*batch 3"]:
     return rmatvec(_exp(x), w)
 
 
-def cayley(x: Float[Array, " 3"]) -> Float[Array, "3 3"]:
+def cayley(x: Float[Array, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     r"""$\tau(x) = (I - \hat x/2)^{-1}(I + \hat x/2) = I + \frac{4}{4 + |x|^2}
     (\hat x + \tfrac12\hat x^2)$, the Cayley map, rational in $x$."""
-    c = 4 / (4 + jnp.sum(x**2))
+    c = (4 / (4 + jnp.sum(x**2, axis=-1)))[..., None, None]
     x_hat = hat(x)
-    return jnp.eye(3, dtype=x.dtype) + c * (x_hat + 0.5 * matmul(x_hat, x_hat))
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=x.dtype), x_hat.shape)
+    return eye + c * (x_hat + 0.5 * matmul(x_hat, x_hat))
 
 
-def _cayley_log(F: Float[Array, "3 3"]) -> Float[Array, " 3"]:
+def _cayley_log(F: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     # tau^{-1}(F) = 2 vee(F - F^T) / (1 + tr F), with `vee` of the skew part.
-    return 4 * vee(F) / (1 + F[0, 0] + F[1, 1] + F[2, 2])
+    trace = F[..., 0, 0] + F[..., 1, 1] + F[..., 2, 2]
+    return 4 * vee(F) / (1 + trace)[..., None]
 
 
-def _cayley_pull(x: Float[Array, " 3"], w: Float[Array, " 3"]) -> Float[Array, " 3"]:
+def _cayley_pull(
+    x: Float[Array, "*batch 3"], w: Float[Array, "*batch 3"]
+) -> Float[Array, "*batch 3"]:
     # d tau^R_x y = (I - x^/2)^{-1} y^ (I + x^/2)^{-1} = hat(4 (I + x^/2) y /
     # (4 + |x|^2)), whose transpose is taken here.
-    return 4 / (4 + jnp.sum(x**2)) * (w - 0.5 * jnp.cross(x, w))
+    c = 4 / (4 + jnp.sum(x**2, axis=-1, keepdims=True))
+    return c * (w - 0.5 * jnp.cross(x, w))
 
 
 def _cayley_transport(
-    x: Float[Array, " 3"], w: Float[Array, " 3"]
-) -> Float[Array, " 3"]:
+    x: Float[Array, "*batch 3"], w: Float[Array, "*batch 3"]
+) -> Float[Array, "*batch 3"]:
     # tau(x)^T w, with hat(x)^T = -hat(x).
     xw = jnp.cross(x, w)
-    return w + 4 / (4 + jnp.sum(x**2)) * (0.5 * jnp.cross(x, xw) - xw)
+    c = 4 / (4 + jnp.sum(x**2, axis=-1, keepdims=True))
+    return w + c * (0.5 * jnp.cross(x, xw) - xw)
 
 
 # Each retraction: (tau, its inverse near the identity, (d tau^R_x)^T, Ad*_tau(x)).
@@ -125,7 +149,9 @@ class SO3(AbstractSpace):
 
     The position is a rotation matrix `R` of shape `(3, 3)`, the velocity the body
     angular velocity $\Omega$ (shape `(3,)`) with $\dot R = R\hat\Omega$, the momentum
-    the body angular momentum $\Pi = \partial L/\partial\Omega$. A step moves
+    the body angular momentum $\Pi = \partial L/\partial\Omega$. A stack of `n`
+    attitudes, shape `(n, 3, 3)` with velocities `(n, 3)`, is the product
+    $SO(3)^n$, one space for the bodies of a mechanism. A step moves
     $R \mapsto R\,\tau(x)$, so `R` stays a rotation to round-off, with $\tau$ the
     exponential map (jaxlie's; the default) or the Cayley map
     $\tau(x) = (I - \hat x/2)^{-1}(I + \hat x/2)$ (Bou-Rabee & Marsden (2009)),
@@ -168,7 +194,7 @@ class SO3(AbstractSpace):
         return matmul(q, _RETRACTIONS[self.retraction][0](x))
 
     def difference(self, q0, q1):
-        return _RETRACTIONS[self.retraction][1](matmul(q0.T, q1))
+        return _RETRACTIONS[self.retraction][1](matmul(transpose(q0), q1))
 
     def tangent(self, q):
         return jnp.zeros(q.shape[:-1], q.dtype)

@@ -71,6 +71,12 @@ class AbstractSpace(eqx.Module):
     def coadjoint(self, xi: PyTree, mu: PyTree) -> PyTree:
         r"""$\mathrm{ad}^*_\xi \mu$, the term a group adds to $\dot\mu$."""
 
+    def scale(self, q: PyTree) -> PyTree:
+        """The size of `q` along each tangent direction, with the structure of a
+        velocity, against which a linearised change $G x$ is compared: ones on a
+        group, whose increments are angles (pure numbers)."""
+        return jtu.tree_map(jnp.ones_like, self.tangent(q))
+
     def departure(self, q: PyTree) -> Array:
         """How far `q` lies off the space, a pure number (unit-free): 0 in a vector
         space, which holds every array of its shape."""
@@ -89,6 +95,9 @@ class Euclidean(AbstractSpace):
 
     def tangent(self, q):
         return jtu.tree_map(jnp.zeros_like, q)
+
+    def scale(self, q):
+        return jtu.tree_map(jnp.abs, q)
 
     def velocity(self, q, xi):
         return xi
@@ -148,6 +157,11 @@ def transport(space, x, w):
 
 def coadjoint(space, xi, mu):
     return _map("coadjoint", space, xi, mu)
+
+
+def scale(space, q):
+    """`scale` of each part of `q`, with the structure of a velocity."""
+    return _map("scale", space, q)
 
 
 def departure(space, q) -> Array:

@@ -12,10 +12,10 @@ from ._custom_types import Args, RealScalarLike
 from ._force import applied_force, depends_on_velocity
 from ._lagrangian import (
     AbstractLagrangian,
-    AbstractRigidBodyLagrangian,
     AbstractSeparableLagrangian,
     as_lagrangian,
     broadcast_mass,
+    declared_mass,
     generalised_force,
     mass_regular,
     velocity,
@@ -55,8 +55,8 @@ SINGULAR_MASS = (
 
 def mass_settles_velocity(lagrangian: AbstractLagrangian) -> bool:
     """Whether the Legendre map is settled for every state of a solve by one check
-    of the Lagrangian, made here: a separable Lagrangian whose mass, or a rigid body
-    whose inertia, is concrete and regular.
+    of the Lagrangian, made here: a declared constant mass (a separable Lagrangian's
+    mass, a rigid body's inertia, or both of bodies) that is concrete and regular.
 
     Its velocity $M^{-1}p$ fails only for a singular mass, fixed for the solve. A
     check in every vector field would put a host callback in XLA's time-stepping
@@ -65,11 +65,8 @@ def mass_settles_velocity(lagrangian: AbstractLagrangian) -> bool:
     the term is built (one being fitted inside `jax.jit`), or a singular one, keeps
     the check in every vector field, which reports it.
     """
-    if isinstance(lagrangian, AbstractSeparableLagrangian):
-        mass = lagrangian.mass
-    elif isinstance(lagrangian, AbstractRigidBodyLagrangian):
-        mass = lagrangian.inertia
-    else:
+    mass = declared_mass(lagrangian)
+    if mass is None:
         return False
     if any(isinstance(m, jax.core.Tracer) for m in jtu.tree_leaves(mass)):
         return False
@@ -165,12 +162,6 @@ class LagrangianTerm(dfx.AbstractTerm):
                     "AbstractSeparableLagrangian takes dV/dq as a gradient in a "
                     "vector space, and this one's `space` is a group. Write it as "
                     "`diffrax_vi.Lagrangian(fn, space=...)`."
-                )
-            if constraint is not None:
-                raise ValueError(
-                    "Holonomic constraints are supported in a vector space only; "
-                    "this Lagrangian lives on a group. A rigid body needs none: "
-                    "its attitude on SO3 is exact."
                 )
         self.mass_checked = (
             not check_every_step

@@ -10,7 +10,10 @@ $$p_1 = D_2 L_d(q_0, q_1) + f^+_0 - G(q_1)^\top\mu,\qquad G(q_1)\,v(q_1, p_1) = 
 
 The first line is the unconstrained step's equation with $p_0$ shifted by the impulse
 $G(q_0)^\top\lambda$: the step's unknowns and $\lambda$ are solved together, one
-Newton system. The second projects the momentum onto the hidden constraint. For the
+Newton system. The second projects the momentum onto the hidden constraint. On a
+Lie group $q_1 = q_0 \oplus \Delta q$ and $G$ is left-trivialised
+(`_constraint.py`), so that the impulses join the momentum in the dual algebra,
+where the unconstrained step's forces act (Leyendecker, Marsden & Ortiz (2008)). For the
 trapezoidal $L_d$ of a separable Lagrangian this is RATTLE, whose positions are
 explicit in $\lambda$: `rattle.py` solves it for the multipliers alone. The step is
 symmetric
@@ -90,11 +93,11 @@ def constrained_step(
         step.q0,
         step.args,
     )
-    # The end position is the space's; the constraint's Jacobian is taken in the
-    # coordinates of q, so `LagrangianTerm` admits constraints in vector spaces only.
+    # On a group the Jacobian is left-trivialised: its impulse is a force and a
+    # body torque, in the dual algebra where the momentum p0 lives.
     space = step.term.lagrangian.space
-    push = transpose_product(g, t0, q0, args)
-    jacobian0 = constraint_jacobian(g, t0, q0, args)
+    push = transpose_product(g, t0, q0, args, space)
+    jacobian0 = constraint_jacobian(g, t0, q0, args, space)
 
     def shifted(lam) -> StepInputs:
         return eqx.tree_at(lambda s: s.p0, step, tree_add(step.p0, push(lam)))
@@ -107,7 +110,7 @@ def constrained_step(
         q1 = retract(space, q0, dq)
         return (r, constraint_values(g, t1, q1, args)), (
             s,
-            constraint_scale(jacobian0, q1),
+            constraint_scale(jacobian0, q1, space),
         )
 
     def increments(unknowns):

@@ -22,6 +22,7 @@ from .._lagrangian import (
     broadcast_mass,
     mass_regular,
     momentum,
+    velocity,
 )
 from .._misc import all_finite, sum_is_finite, tree_size
 from .._private_api import unvmap_any
@@ -55,7 +56,9 @@ def check_start(step: StepInputs) -> Start:
         step.p0,
         step.args,
     )
-    (v0, _), result = step.term.hamilton(t, (q, p), args)
+    # The velocity alone: Hamilton's equations would also trace the force (and a
+    # constraint's index-reduced forces), which the start does not need.
+    v0, result = velocity(lagrangian, t, (q, p), args)
     n = tree_size(p)
     if isinstance(lagrangian, AbstractSeparableLagrangian):
         mass = broadcast_mass(lagrangian.mass, p)

@@ -36,8 +36,9 @@ from .._custom_types import P, Q, V
 from .._discrete import MidpointRule
 from .._force import applied_force, power
 from .._lagrangian import (
+    AbstractMultibodyLagrangian,
     AbstractSeparableLagrangian,
-    broadcast_mass,
+    constant_mass,
     lagrangian_value,
     momentum_reads_position,
 )
@@ -349,14 +350,17 @@ class AbstractVPRK(AbstractImplicitVI):
 
     def inverse_mass(self, step: StepInputs) -> PyTree | None:
         lagrangian = step.term.lagrangian
-        if not isinstance(lagrangian, AbstractSeparableLagrangian):
+        if not isinstance(
+            lagrangian, AbstractSeparableLagrangian | AbstractMultibodyLagrangian
+        ):
             return None
-        s = self.tableau.stages
-        mass = broadcast_mass(lagrangian.mass, step.p0)
+        # On a group the unknown is the one velocity of the Lie midpoint rule.
+        stages = () if self._on_group(step) else (self.tableau.stages,)
+        mass = constant_mass(lagrangian, step.p0)
         return jtu.tree_map(
-            lambda m, p: jnp.broadcast_to(1 / jnp.abs(m), (s, *jnp.shape(p))).astype(
-                p.dtype
-            ),
+            lambda m, p: jnp.broadcast_to(
+                1 / jnp.abs(m), (*stages, *jnp.shape(p))
+            ).astype(p.dtype),
             mass,
             step.p0,
         )

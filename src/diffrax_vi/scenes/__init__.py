@@ -26,6 +26,11 @@ from ._mechanisms import (
     LoopClosure as LoopClosure,
     swing_up as swing_up,
 )
+from ._multibody import (
+    rigid_chain as rigid_chain,
+    rigid_double_pendulum as rigid_double_pendulum,
+    RigidBodiesLagrangian as RigidBodiesLagrangian,
+)
 from ._one_dof import (
     duffing as duffing,
     DuffingLagrangian as DuffingLagrangian,
@@ -73,6 +78,8 @@ SCENES = {
     "heavy_top": heavy_top,
     "pendulum_3d": pendulum_3d,
     "satellite": satellite,
+    "rigid_double_pendulum": rigid_double_pendulum,
+    "rigid_chain": rigid_chain,
 }
 """Every scene by name (the names `diffrax-vi --scene` accepts), each with the
 function that makes it: called with no arguments, it gives the scene at its default
