@@ -96,6 +96,13 @@ STUDIES = {
     "heavy_top": (["TrapezoidalVI", "MidpointVI", "Tsit5"], 200, 50, None),
     "pendulum_3d": (["TrapezoidalVI", "MidpointVI", "Tsit5", "Dopri8"], 100, 100, 16),
     "satellite": (["MidpointVI", "TrapezoidalVI", "Tsit5"], 20, 200, None),
+    "rigid_double_pendulum": (
+        ["TrapezoidalVI", "MidpointVI", "MidpointVI-Yoshida4", "Tsit5", "Dopri8"],
+        100,
+        100,
+        None,
+    ),
+    "rigid_chain": (["TrapezoidalVI", "Tsit5"], 20, 100, None),
 }
 
 
@@ -130,6 +137,12 @@ PAGES = {
         "Rotations on SO(3) and R³ × SO(3) "
         "([Rigid bodies and Lie groups](../lie-groups.md)).",
         ["free_rigid_body", "heavy_top", "pendulum_3d", "satellite"],
+    ),
+    "mechanisms": (
+        "Mechanisms",
+        "Rigid bodies joined by joints, holonomic constraints on (R³ × SO(3))ⁿ "
+        "([Joints and mechanisms](../lie-groups.md#joints-and-mechanisms)).",
+        ["rigid_double_pendulum", "rigid_chain"],
     ),
 }
 HEADER = (

@@ -251,8 +251,6 @@ def test_what_a_group_cannot_take_says_what_to_use():
         dvi.terms_for(dvi.StormerVerlet(), scene.lagrangian)
     with pytest.raises(ValueError, match="group"):
         dvi.TangentLift(scene.lagrangian)
-    with pytest.raises(ValueError, match="group"):
-        dvi.LagrangianTerm(scene.lagrangian, constraint=lambda t, R, a: R[0, 0])
     with pytest.raises(ValueError, match=r"\(3,\)"):
         dfx.diffeqsolve(term, dvi.MidpointVI(), 0.0, 1.0, 0.1, (jnp.eye(3), jnp.eye(3)))
 

@@ -119,6 +119,18 @@ def test_perturbed(getkey):
     assert 0.5e-2 < deviation / (1 + 0.4) < 2e-2
 
 
+def test_perturbed_states_of_a_constrained_scene_keep_its_constraint(getkey):
+    """An ensemble of the Cartesian pendulum starts on its circle and its hidden
+    constraint (a constrained solve refuses any other start), spread around y0 and
+    with y0 itself first."""
+    scene = scenes.cartesian_pendulum()
+    q, p = scene.perturbed(getkey(), 8, spread=1e-2)
+    assert np.max(np.abs(np.sum(np.asarray(q) ** 2, axis=-1) - 1)) < 1e-14
+    assert np.max(np.abs(np.sum(np.asarray(q) * np.asarray(p), axis=-1))) < 1e-14
+    assert np.allclose(q[0], scene.y0[0], rtol=0, atol=1e-15)
+    assert 1e-3 < np.std(np.asarray(q[1:, 0])) < 1e-1
+
+
 @pytest.mark.slow
 def test_learned_lagrangian():
     """A small MLP potential trained through MidpointVI reproduces the pendulum on an

@@ -37,6 +37,8 @@ SCENE_NAMES = (
     "heavy_top",
     "pendulum_3d",
     "satellite",
+    "rigid_double_pendulum",
+    "rigid_chain",
 )
 DEFAULT_OUT = "diffrax-vi-results"
 DTYPES = ("float64", "float32")

@@ -161,7 +161,11 @@ def rank_ok(jacobian: Array) -> Array:
     m, n = jacobian.shape
     if m > n:
         return jnp.array(False)
-    s = jnp.linalg.svd(jacobian, compute_uv=False)
+    # Of the transpose: with XLA on CPU (jax 0.10.2), `svd(G)` in a program that
+    # also multiplies G by the velocity returned that product with another
+    # column of G (a hinge's start refused as off its constraint;
+    # `tests/test_joints.py`, the Lie groups page's mechanism).
+    s = jnp.linalg.svd(jacobian.T, compute_uv=False)
     return (s[-1] > singular_threshold(n, jacobian.dtype) * s[0]) & jnp.all(
         jnp.isfinite(s)
     )

@@ -53,6 +53,7 @@ from ._tolerance import (
     newton_is_dense,
     newton_tolerance,
     ROUNDOFF_RESIDUAL,
+    ROUNDOFF_UPDATE,
     scaled_norm,
 )
 
@@ -568,11 +569,15 @@ class FixedPoint(AbstractVIRootFinder):
             & ~converged
             & ~(state.size <= self.max_rate * state.size_prev)
         )
-        # Slowing down below sqrt(eps) after a fast contraction: round-off.
-        at_roundoff = (
-            slow
-            & (state.size <= newton_tolerance(tree_dtype(y)))
-            & (state.fastest <= FAST_CONTRACTION)
+        # Slowing down below sqrt(eps) after a fast contraction, or within a
+        # thousand eps: round-off.
+        eps = float(jnp.finfo(tree_dtype(y)).eps)
+        at_roundoff = slow & (
+            (state.size <= ROUNDOFF_UPDATE * eps)
+            | (
+                (state.size <= newton_tolerance(tree_dtype(y)))
+                & (state.fastest <= FAST_CONTRACTION)
+            )
         )
         converged = converged | at_roundoff
         too_slow = slow & ~at_roundoff

@@ -124,6 +124,7 @@ def constrained_step(
         inverse_mass=None if inverse_mass is None else WithMultipliers(inverse_mass),
         # The joint Jacobian of a saddle-point system is indefinite: no curvature
         # test (no `fold_residual`).
+        constrained=True,
         work=None
         if work_at is None
         else (lambda unknowns: work_at(shifted(unknowns[1]), unknowns[0])),

@@ -28,7 +28,11 @@ from .._misc import all_finite, sum_is_finite, tree_size
 from .._private_api import unvmap_any
 from .._root_finders import AbstractVIRootFinder, FixedPoint, Newton, solve, Solved
 from .._spectrum import symmetric_extremes
-from .._tolerance import FIXED_POINT_STEPS_FACTOR, singular_threshold
+from .._tolerance import (
+    CONSTRAINED_DENSE_MAX,
+    FIXED_POINT_STEPS_FACTOR,
+    singular_threshold,
+)
 from .base import MethodStep, StepInputs
 
 
@@ -118,6 +122,8 @@ class StepEquations(eqx.Module):
       the test. `None` for equations with no such structure.
     - `work(w)`: the work of the step's discrete applied forces, or `None` without
       forces.
+    - `constrained`: whether the unknowns are a step's and its constraint
+      multipliers, whose Jacobian is a saddle point (`constrained_dense`).
     """
 
     residual: Callable[[PyTree], tuple[PyTree, PyTree]]
@@ -126,6 +132,15 @@ class StepEquations(eqx.Module):
     tags: frozenset = eqx.field(static=True, default=frozenset())
     fold_residual: Callable[[PyTree], tuple[PyTree, PyTree]] | None = None
     work: Callable[[PyTree], Array] | None = None
+    constrained: bool = eqx.field(static=True, default=False)
+
+
+def constrained_dense(equations: StepEquations, guess: PyTree) -> bool:
+    """Whether Newton's method factorises the Jacobian of constrained step equations
+    densely: up to `CONSTRAINED_DENSE_MAX` unknowns, where a matrix-free solve of
+    the indefinite saddle-point system needs BiCGStab and, where it breaks down, the
+    normal equations."""
+    return equations.constrained and tree_size(guess) <= CONSTRAINED_DENSE_MAX
 
 
 class AbstractStepRootFinding(eqx.Module):
@@ -191,11 +206,16 @@ class FixedPointThenNewton(AbstractStepRootFinding):
         return None
 
     def solve(self, equations, guess, carry, max_steps):
-        conjugate_gradients = lx.positive_semidefinite_tag in equations.tags
+        if lx.positive_semidefinite_tag in equations.tags:
+            linear_solver = "krylov"
+        elif constrained_dense(equations, guess):
+            linear_solver = "dense"
+        else:
+            linear_solver = "auto"
         newton = lambda: solve(
             equations.residual,
             guess,
-            Newton(linear_solver="krylov" if conjugate_gradients else "auto"),
+            Newton(linear_solver=linear_solver),
             max_steps,
             preconditioner=equations.inverse_mass,
             tags=equations.tags,

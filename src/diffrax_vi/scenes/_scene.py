@@ -8,6 +8,7 @@ import jax.random as jr
 import jax.tree_util as jtu
 from jaxtyping import Array, PRNGKeyArray, PyTree
 
+from .._constraint import project_onto_constraints
 from .._lagrangian import AbstractLagrangian, energy
 from .._space import is_euclidean, retract
 from .._term import LagrangianTerm
@@ -79,7 +80,19 @@ class Scene(eqx.Module):
         Gaussian noise of standard deviation `spread * (1 + |leaf|)`. The first member
         is `y0` itself. Returns `y0`'s structure with a leading axis of size `n`. On a
         group the positions move along it, `q0` moved by a tangent increment of
-        standard deviation `spread`."""
+        standard deviation `spread`. With a constraint, each member is then moved
+        onto it ([`diffrax_vi.project_onto_constraints`][]), where a constrained
+        solve must start."""
+        return self._on_constraints(self._spread(key, n, spread))
+
+    def _on_constraints(self, y):
+        if self.constraint is None:
+            return y
+        term = self.term()
+        project = lambda y: project_onto_constraints(term, 0.0, y, self.args)[0]
+        return jax.vmap(project)(y)
+
+    def _spread(self, key, n, spread):
 
         def perturb(k, x):
             x = jnp.asarray(x)
