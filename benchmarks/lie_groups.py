@@ -88,8 +88,9 @@ def cayley(x):
 
 
 def pull(x, w):
-    """(d exp^R_x)^T w = J_l(-x) w, the left Jacobian of SO(3) transposed."""
-    t2 = jnp.sum(x**2)
+    """(d exp^R_x)^T w = J_l(-x) w, the left Jacobian of SO(3) transposed (of each
+    pair of a stack)."""
+    t2 = jnp.sum(x**2, axis=-1, keepdims=True)
     small = t2 < 1e-4
     safe = jnp.where(small, 1.0, t2)
     t = jnp.sqrt(safe)

@@ -43,6 +43,7 @@ from ._lagrangian import (
 )
 from ._linear import (
     pivot_ratio,
+    product,
     unrolled_lu_apply,
     unrolled_lu_factor,
     unrolled_lu_solve,
@@ -130,7 +131,7 @@ def constraint_scale(jacobian: Array, q: Q, space=None) -> Float[Array, " m"]:
     """$|G|\\,|q|$: the size of the terms a constraint value balances, to which its
     residual is compared (on a group, an angle counts as 1: `AbstractSpace.scale`)."""
     size = q if space is None else space_scale(space, q)
-    return jnp.abs(jacobian) @ jnp.abs(_flat(size))
+    return product(jnp.abs(jacobian), jnp.abs(_flat(size)))
 
 
 def _flat(tree: PyTree) -> Array:
@@ -153,7 +154,10 @@ def hidden_constraint(jacobian: Array, v: PyTree, rate: Array) -> tuple[Array, A
     """The hidden constraint $G v + \\partial g/\\partial t$ and its scale
     $|G|\\,|v| + |\\partial g/\\partial t|$."""
     flat = _flat(v)
-    return jacobian @ flat + rate, jnp.abs(jacobian) @ jnp.abs(flat) + jnp.abs(rate)
+    return (
+        product(jacobian, flat) + rate,
+        product(jnp.abs(jacobian), jnp.abs(flat)) + jnp.abs(rate),
+    )
 
 
 def rank_ok(jacobian: Array) -> Array:
@@ -407,10 +411,12 @@ def multiplier_force(
         inverse = 1 / _flat(mass)
         w_gt, w_f = jacobian.T * inverse[:, None], _flat(force) * inverse
         solve_reduced = unrolled_lu_solve if newton_is_dense(m) else _lu_solve
-        lam, reduced_ratio = solve_reduced(jacobian @ w_gt, jacobian @ w_f + curvature)
+        lam, reduced_ratio = solve_reduced(
+            product(jacobian, w_gt), product(jacobian, w_f) + curvature
+        )
         ok = ~(reduced_ratio <= singular_threshold(m, dtype)) & all_finite(lam)
         result = dfx.RESULTS.where(ok, dfx.RESULTS.successful, dfx.RESULTS.singular)
-        return unravel(-jacobian.T @ lam), result
+        return unravel(-product(jacobian.T, lam)), result
 
     def dl_dv(t_, q_, v_):
         return _flat(momentum(lagrangian, t_, q_, v_, args))
@@ -427,7 +433,7 @@ def multiplier_force(
         solved = jax.vmap(lambda b: unrolled_lu_apply(lu, perm, b))(rhs.T)
         w_gt, w_f = solved[:-1].T, solved[-1]
         lam, reduced_ratio = unrolled_lu_solve(
-            jacobian @ w_gt, jacobian @ w_f + curvature
+            product(jacobian, w_gt), product(jacobian, w_f) + curvature
         )
         # As lineax's LU: a solution that is not finite (at a singular
         # configuration, G W G^T loses rank) is a failed solve.
@@ -450,4 +456,4 @@ def multiplier_force(
             solved.result == lx.RESULTS.successful
         )
     result = dfx.RESULTS.where(ok, dfx.RESULTS.successful, dfx.RESULTS.singular)
-    return unravel(-jacobian.T @ lam), result
+    return unravel(-product(jacobian.T, lam)), result

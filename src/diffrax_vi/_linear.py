@@ -15,6 +15,25 @@ from ._misc import tree_max_abs
 from ._private_api import unvmap_any
 
 
+# Products of at most this many multiplications are written as sums (`product`).
+SMALL_PRODUCT = 1 << 14
+
+
+def product(a: Array, b: Array) -> Array:
+    """`a @ b` for a matrix `a` and a vector or matrix `b`, as elementwise products
+    and a sum where it is small: inside a step's loop (batched by a Jacobian's
+    `vmap`) XLA on CPU can make a small `dot_general` a custom fusion, which breaks
+    the loop into kernels dispatched one by one (`diagnostics.loop_breakers`).
+    Larger products keep `@`, whose kernel then costs less than the loop's
+    overhead."""
+    columns = 1 if b.ndim == 1 else b.shape[1]
+    if a.size * columns > SMALL_PRODUCT:
+        return a @ b
+    if b.ndim == 1:
+        return jnp.sum(a * b[None, :], axis=1)
+    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+
+
 def pivot_ratio(lu: Array) -> Scalar:
     pivots = jnp.abs(jnp.diagonal(lu))
     return jnp.min(pivots) / jnp.max(pivots)

@@ -53,7 +53,6 @@ from ._tolerance import (
     newton_is_dense,
     newton_tolerance,
     ROUNDOFF_RESIDUAL,
-    ROUNDOFF_UPDATE,
     scaled_norm,
 )
 
@@ -461,7 +460,8 @@ def _with_multipliers(fn, y, args, f, inverse_mass) -> tuple[PyTree, PyTree]:
             lx.MatrixLinearOperator(schur), rhs, lx.LU(), throw=False
         ).value
     from_multipliers = jtu.tree_map(
-        lambda x: jnp.tensordot(dlam, x, axes=1), weighted_b
+        lambda x: jnp.sum(jnp.reshape(dlam, (m,) + (1,) * (x.ndim - 1)) * x, axis=0),
+        weighted_b,
     )
     dw = jtu.tree_map(lambda a, b: a - b, weigh(r_w), from_multipliers)
     return (dw, dlam), from_multipliers
@@ -569,15 +569,11 @@ class FixedPoint(AbstractVIRootFinder):
             & ~converged
             & ~(state.size <= self.max_rate * state.size_prev)
         )
-        # Slowing down below sqrt(eps) after a fast contraction, or within a
-        # thousand eps: round-off.
-        eps = float(jnp.finfo(tree_dtype(y)).eps)
-        at_roundoff = slow & (
-            (state.size <= ROUNDOFF_UPDATE * eps)
-            | (
-                (state.size <= newton_tolerance(tree_dtype(y)))
-                & (state.fastest <= FAST_CONTRACTION)
-            )
+        # Slowing down below sqrt(eps) after a fast contraction: round-off.
+        at_roundoff = (
+            slow
+            & (state.size <= newton_tolerance(tree_dtype(y)))
+            & (state.fastest <= FAST_CONTRACTION)
         )
         converged = converged | at_roundoff
         too_slow = slow & ~at_roundoff

@@ -27,11 +27,12 @@ DENSE_MAX = 64
 NEWTON_DENSE_MAX = 16
 
 # The constrained step equations (a step's unknowns and its multipliers) have an
-# indefinite saddle-point Jacobian, which a matrix-free solve takes by BiCGStab with
-# the normal equations as its fallback: on `scenes.rigid_double_pendulum` (18
-# unknowns) that compiled in 30 s against 8 s for the dense LU, and stepped no
-# faster. Such systems are factorised densely up to this size.
-CONSTRAINED_DENSE_MAX = 32
+# indefinite saddle-point Jacobian. A matrix-free solve takes it by BiCGStab with the
+# normal equations as its fallback, which compiled in 30 s against 8 s for the dense
+# LU on `scenes.rigid_double_pendulum` (18 unknowns) and broke down on
+# `scenes.rigid_chain(links=8)` (72). Such systems are factorised densely, unrolled
+# up to this size (`_solver/unknowns.constrained_solver`).
+CONSTRAINED_DENSE_MAX = 128
 
 
 def newton_is_dense(n: int) -> bool:
@@ -91,12 +92,6 @@ FIXED_POINT_STEPS_FACTOR = 3
 # period, above the iteration's 64 eps tolerance.)
 FAST_CONTRACTION = 1e-2
 
-# An update this many eps of the terms or smaller that stops contracting is at the
-# round-off of its equations, whatever the iteration's rate was: the constrained Lie
-# midpoint step of `scenes.rigid_double_pendulum` contracts by 0.01-0.1 per update
-# (never by 100 in one) down to 85-370 eps, where its multipliers' round-off holds
-# it. Its error there is below the update's size.
-ROUNDOFF_UPDATE = 1024
 
 # --- Method coefficients (float64 numbers, absolute) -----------------------------
 

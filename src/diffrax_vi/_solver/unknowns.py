@@ -123,7 +123,7 @@ class StepEquations(eqx.Module):
     - `work(w)`: the work of the step's discrete applied forces, or `None` without
       forces.
     - `constrained`: whether the unknowns are a step's and its constraint
-      multipliers, whose Jacobian is a saddle point (`constrained_dense`).
+      multipliers, whose Jacobian is a saddle point (`constrained_solver`).
     """
 
     residual: Callable[[PyTree], tuple[PyTree, PyTree]]
@@ -135,12 +135,14 @@ class StepEquations(eqx.Module):
     constrained: bool = eqx.field(static=True, default=False)
 
 
-def constrained_dense(equations: StepEquations, guess: PyTree) -> bool:
-    """Whether Newton's method factorises the Jacobian of constrained step equations
-    densely: up to `CONSTRAINED_DENSE_MAX` unknowns, where a matrix-free solve of
-    the indefinite saddle-point system needs BiCGStab and, where it breaks down, the
-    normal equations."""
-    return equations.constrained and tree_size(guess) <= CONSTRAINED_DENSE_MAX
+def constrained_solver(guess: PyTree) -> str | lx.AbstractLinearSolver:
+    """Newton's linear solver for constrained step equations, whose Jacobian is an
+    indefinite saddle point: a dense factorisation at every size, unrolled up to
+    `CONSTRAINED_DENSE_MAX` unknowns and LAPACK's beyond (a loop breaker, but a
+    step of that size costs far more than the kernels' dispatch). Matrix-free
+    solves (BiCGStab, then the normal equations) broke down on
+    `scenes.rigid_chain(links=8)`, 72 unknowns, at every step size."""
+    return "dense" if tree_size(guess) <= CONSTRAINED_DENSE_MAX else lx.LU()
 
 
 class AbstractStepRootFinding(eqx.Module):
@@ -208,8 +210,8 @@ class FixedPointThenNewton(AbstractStepRootFinding):
     def solve(self, equations, guess, carry, max_steps):
         if lx.positive_semidefinite_tag in equations.tags:
             linear_solver = "krylov"
-        elif constrained_dense(equations, guess):
-            linear_solver = "dense"
+        elif equations.constrained:
+            linear_solver = constrained_solver(guess)
         else:
             linear_solver = "auto"
         newton = lambda: solve(
