@@ -150,6 +150,12 @@ SLOW = (
         )
         for s in ("TrapezoidalVI", "Tsit5")
     ),
+    # The chain is the rigid double pendulum's code with more links: its loops
+    # compile for a minute each.
+    *(
+        f"test_compiled_loops.py::test_no_loop_is_broken_into_kernels[rigid_chain-{s}]"
+        for s in ("MidpointVI", "TrapezoidalVI", "Tsit5")
+    ),
     # The LGVI's sixth order: its fourth and eighth run by default.
     "test_rigid_body.py::test_lgvi_order_against_scipy[kahan_li6",
     # A composition takes Stormer-Verlet steps, whose reversal runs by default.
