@@ -55,20 +55,23 @@ from step_cost import (  # noqa: E402
 
 
 def hat(w):
-    zero = jnp.zeros_like(w[0])
+    """The skew matrix of `w` (of each vector of a stack)."""
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    zero = jnp.zeros_like(x)
     return jnp.stack(
         [
-            jnp.stack([zero, -w[2], w[1]]),
-            jnp.stack([w[2], zero, -w[0]]),
-            jnp.stack([-w[1], w[0], zero]),
-        ]
+            jnp.stack([zero, -z, y], -1),
+            jnp.stack([z, zero, -x], -1),
+            jnp.stack([-y, x, zero], -1),
+        ],
+        -2,
     )
 
 
 def matmul(a, b):
-    """`a @ b` for 3 x 3 matrices, as a sum (a small `dot` can become a custom
-    fusion that breaks the loop into kernels)."""
-    return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
+    """`a @ b` for 3 x 3 matrices (of each pair of a stack), as a sum (a small `dot`
+    can become a custom fusion that breaks the loop into kernels)."""
+    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
 def rmatvec(a, x):

@@ -42,7 +42,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import diffrax_vi as dvi  # noqa: E402
-from lie_groups import pull  # noqa: E402
+from lie_groups import hat, matmul, pull  # noqa: E402
 
 
 MUJOCO_STEP = 1e-3
@@ -207,24 +207,6 @@ def our_runs(scene, span, samples, repeats, cases):
     return rows
 
 
-def _hat(w):
-    zero = jnp.zeros_like(w[..., 0])
-    x, y, z = w[..., 0], w[..., 1], w[..., 2]
-    return jnp.stack(
-        [
-            jnp.stack([zero, -z, y], -1),
-            jnp.stack([z, zero, -x], -1),
-            jnp.stack([-y, x, zero], -1),
-        ],
-        -2,
-    )
-
-
-def _mm(a, b):
-    """`a @ b` of stacks of small matrices, as a sum (no matrix-product kernel)."""
-    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
-
-
 def _mv(a, x):
     return jnp.sum(a * x[..., None, :], axis=-1)
 
@@ -237,8 +219,8 @@ def _exp(x):
     t = jnp.sqrt(safe)
     a = jnp.where(small, 1 - t2 / 6 + t2**2 / 120, jnp.sin(t) / t)
     b = jnp.where(small, 0.5 - t2 / 24 + t2**2 / 720, (1 - jnp.cos(t)) / safe)
-    k = _hat(x)
-    return jnp.eye(3) + a * k + b * _mm(k, k)
+    k = hat(x)
+    return jnp.eye(3) + a * k + b * matmul(k, k)
 
 
 def _solve(A, b):
@@ -305,7 +287,7 @@ def bare_rattle(scene, half, h, n):
             xdot = (kicked + fx) / mass
             w = pi + torque
             r = J * xi - pull(h * xi, w)
-            g = joints(x + h * xdot, _mm(R, _exp(h * xi)))
+            g = joints(x + h * xdot, matmul(R, _exp(h * xi)))
             scale = jnp.concatenate(
                 [(J * jnp.abs(xi) + jnp.abs(w)).ravel(), jnp.ones_like(g)]
             )
@@ -327,7 +309,7 @@ def bare_rattle(scene, half, h, n):
         fx, torque = push(R, lam)
         x1 = x + h * (kicked + fx) / mass
         F = _exp(h * xi)
-        R1 = _mm(R, F)
+        R1 = matmul(R, F)
         p1 = kicked + fx + 0.5 * h * force
         pi1 = jnp.sum(F * (pi + torque)[:, :, None], axis=-2)  # F^T (pi + torque)
         G1 = jacobian(R1)

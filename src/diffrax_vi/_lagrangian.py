@@ -223,6 +223,21 @@ def constant_mass(lagrangian: AbstractLagrangian, p: P) -> P | None:
     return None
 
 
+def fixed_point_inverse_mass(lagrangian: AbstractLagrangian, p: P) -> P | None:
+    """One over the declared mass of a separable Lagrangian or of bodies, with the
+    structure of `p`: the fixed-point iteration's preconditioner, or `None` where a
+    step takes Newton's method (a single rigid body, any other Lagrangian)."""
+    if not isinstance(
+        lagrangian, AbstractSeparableLagrangian | AbstractMultibodyLagrangian
+    ):
+        return None
+    return jtu.tree_map(
+        lambda m, x: jnp.broadcast_to(1 / jnp.abs(m), jnp.shape(x)).astype(x.dtype),
+        constant_mass(lagrangian, p),
+        p,
+    )
+
+
 class SeparableLagrangian(AbstractSeparableLagrangian):
     r"""A separable Lagrangian $L = \tfrac12 v^\top M v - V(t, q, \text{args})$ from a
     potential function and a constant diagonal mass.

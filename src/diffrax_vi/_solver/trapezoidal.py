@@ -10,10 +10,9 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 from .._discrete import TrapezoidalRule
 from .._force import applied_force, depends_on_velocity
 from .._lagrangian import (
-    AbstractMultibodyLagrangian,
     AbstractSeparableLagrangian,
     broadcast_mass,
-    constant_mass,
+    fixed_point_inverse_mass,
     generalised_force,
     mass_regular,
 )
@@ -78,21 +77,6 @@ def _rattle(step: StepInputs) -> bool:
     """Whether the step is RATTLE on the multipliers alone: explicit momenta and a
     constraint."""
     return step.term.constraint is not None and _positional(step)
-
-
-def _inverse_mass(step: StepInputs) -> PyTree | None:
-    """One over the declared constant mass of the step's velocity (the fixed-point
-    iteration's preconditioner), or `None`."""
-    lagrangian = step.term.lagrangian
-    if not isinstance(
-        lagrangian, AbstractSeparableLagrangian | AbstractMultibodyLagrangian
-    ):
-        return None
-    return jtu.tree_map(
-        lambda m, p: (1 / jnp.abs(m)).astype(p.dtype),
-        constant_mass(lagrangian, step.p0),
-        step.p0,
-    )
 
 
 def _residual(step: StepInputs, v) -> tuple[PyTree, PyTree]:
@@ -190,7 +174,7 @@ class TrapezoidalVI(
                 root_finding(self.root_finder),
                 self.root_find_max_steps,
                 None if step.term.force is None else _work,
-                _inverse_mass(step),
+                fixed_point_inverse_mass(step.term.lagrangian, step.p0),
             )
         equations = StepEquations(
             residual=lambda v: _residual(step, v),

@@ -36,9 +36,8 @@ from .._custom_types import P, Q, V
 from .._discrete import MidpointRule
 from .._force import applied_force, power
 from .._lagrangian import (
-    AbstractMultibodyLagrangian,
     AbstractSeparableLagrangian,
-    constant_mass,
+    fixed_point_inverse_mass,
     lagrangian_value,
     momentum_reads_position,
 )
@@ -349,20 +348,13 @@ class AbstractVPRK(AbstractImplicitVI):
         return r, s
 
     def inverse_mass(self, step: StepInputs) -> PyTree | None:
-        lagrangian = step.term.lagrangian
-        if not isinstance(
-            lagrangian, AbstractSeparableLagrangian | AbstractMultibodyLagrangian
-        ):
+        inverse = fixed_point_inverse_mass(step.term.lagrangian, step.p0)
+        if inverse is None:
             return None
         # On a group the unknown is the one velocity of the Lie midpoint rule.
         stages = () if self._on_group(step) else (self.tableau.stages,)
-        mass = constant_mass(lagrangian, step.p0)
         return jtu.tree_map(
-            lambda m, p: jnp.broadcast_to(
-                1 / jnp.abs(m), (*stages, *jnp.shape(p))
-            ).astype(p.dtype),
-            mass,
-            step.p0,
+            lambda w: jnp.broadcast_to(w, (*stages, *jnp.shape(w))), inverse
         )
 
     @property
