@@ -184,6 +184,9 @@ class LagrangianTerm(dfx.AbstractTerm):
         index-reduced equations (zero without a constraint). On a group the first
         entry is the velocity $\xi$ (`vf` turns it into $\dot q$) and $\dot p$ the
         Euler–Poincaré equation $\partial^L_q L + \mathrm{ad}^*_\xi p + F$."""
+        return _hamilton(self, t, y, args, v_guess)
+
+    def _hamilton(self, t, y, args, v_guess):
         space = self.lagrangian.space
         q, p = split_state(y, "y", space)
         v, result = velocity(self.lagrangian, t, y, args, v_guess=v_guess)
@@ -221,6 +224,14 @@ class LagrangianTerm(dfx.AbstractTerm):
 
     def prod(self, vf: PyTree, control: RealScalarLike) -> PyTree:
         return jtu.tree_map(lambda v: control * v, vf)
+
+
+# Traced once per program: a solve evaluates Hamilton's equations at every stage of
+# a Runge-Kutta step and at both ends of each step for dense output, and diffrax
+# traces a step up to three times; the nested jit is inlined by XLA.
+_hamilton = eqx.filter_jit(
+    lambda term, t, y, args, v_guess: term._hamilton(t, y, args, v_guess)
+)
 
 
 class _SeparableVelocity(eqx.Module):

@@ -429,6 +429,21 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         made_jump: bool | Bool[ArrayLike, ""],
         substep: Substep,
     ) -> tuple[PyTree, None, dict[str, PyTree], VIState, dfx.RESULTS]:
+        return _traced_once(
+            terms, t0, t1, y0, args, solver_state, made_jump, substep, solver=self
+        )
+
+    def _fractional_step(
+        self,
+        terms: dfx.AbstractTerm,
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: PyTree,
+        args: Args,
+        solver_state: VIState,
+        made_jump: bool | Bool[ArrayLike, ""],
+        substep: Substep,
+    ) -> tuple[PyTree, None, dict[str, PyTree], VIState, dfx.RESULTS]:
         compensation = solver_state.compensation
         step = step_inputs(
             terms, t0, t1, y0, args, compensation, substep, type(self).__name__
@@ -447,3 +462,10 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         self, terms: dfx.AbstractTerm, t0: RealScalarLike, y0: PyTree, args: Args
     ) -> PyTree:
         return terms.vf(t0, y0, args)
+
+
+@eqx.filter_jit
+def _traced_once(terms, t0, t1, y0, args, solver_state, made_jump, substep, solver):
+    return solver._fractional_step(
+        terms, t0, t1, y0, args, solver_state, made_jump, substep
+    )
