@@ -139,6 +139,19 @@ def test_adaptive_study_takes_the_steps_of_a_plain_solve(n_save):
         assert run.errors["energy"][i + 1] == pytest.approx(expected, rel=1e-10)
 
 
+def test_methods_compiled_together_run_as_each_alone():
+    # A study compiles its methods' solves concurrently, then runs them in turn:
+    # each method's errors and final state are those of a study of it alone.
+    methods = ["MidpointVI", "StormerVerlet"]
+    kwargs = dict(periods=2, steps_per_period=50, n_save=10)
+    together = drift(kepler(), methods, **kwargs).runs
+    for method, run in zip(methods, together):
+        (alone,) = drift(kepler(), [method], **kwargs).runs
+        assert run.solver == alone.solver == method
+        assert run.steps == alone.steps and run.result == alone.result
+        assert all(np.array_equal(run.errors[k], alone.errors[k]) for k in run.errors)
+
+
 def test_wall_time_is_of_the_method_alone(monkeypatch):
     # The tracking of errors adds work to every step (on CPU it made Stormer-Verlet on
     # Kepler 25x slower), so a study times a separate plain solve: the solver itself,

@@ -464,6 +464,10 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         return terms.vf(t0, y0, args)
 
 
+# A step traced once per program: diffrax traces a solver's step up to three times
+# (twice under `eval_shape` to find what stays static, then in its loop). JAX reuses
+# the trace of a nested jit for the same abstract inputs, and XLA inlines it, so the
+# compiled loop is the same (tracing MidpointVI on four_bar: 6.9 -> 2.2 s).
 @eqx.filter_jit
 def _traced_once(terms, t0, t1, y0, args, solver_state, made_jump, substep, solver):
     return solver._fractional_step(

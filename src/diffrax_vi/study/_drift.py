@@ -18,7 +18,7 @@ from ._checks import (
     step_count,
 )
 from ._methods import as_method, Method, ReversibleSteps
-from ._run import cast_scene, run, shard_ensemble
+from ._run import cast_scene, run_all, shard_ensemble
 from ._table import markdown_table, write_records
 
 
@@ -351,19 +351,19 @@ def drift(
         y0 = scene.perturbed(jr.key(seed), ensemble, spread)
         if shard:
             y0 = shard_ensemble(y0, ensemble)
+    outcomes = run_all(
+        scene,
+        methods,
+        t1=t1,
+        n_steps=n_steps,
+        n_save=n_save,
+        dtype=dtype,
+        y0=y0,
+        ensemble=ensemble is not None,
+        progress=progress,
+    )
     runs = []
-    for method in methods:
-        outcome = run(
-            scene,
-            method,
-            t1=t1,
-            n_steps=n_steps,
-            n_save=n_save,
-            dtype=dtype,
-            y0=y0,
-            ensemble=ensemble is not None,
-            progress=progress,
-        )
+    for method, outcome in zip(methods, outcomes):
         runs.append(
             DriftRun(
                 solver=method.name,

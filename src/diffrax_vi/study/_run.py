@@ -1,5 +1,7 @@
+import concurrent.futures
 import dataclasses
 import math
+import os
 import re
 import time
 from collections.abc import Callable
@@ -202,6 +204,19 @@ class _Solves(eqx.Module):
         return errors, final, taken, result
 
 
+@dataclasses.dataclass(frozen=True)
+class Prepared:
+    """One method's two solves of one scene, compiled (see `prepare`): the tracked
+    one that records the errors and the plain one that is timed."""
+
+    scene: Scene
+    y0: PyTree[Array]
+    ensemble: bool
+    n_save: int
+    tracked: Callable
+    plain: Callable
+
+
 def run(
     scene: Scene,
     method: Method,
@@ -238,6 +253,46 @@ def run(
     separate plain solve of the same method, the same way, saving only `t1`: what
     the method costs a user rather than the study: the best of up to three compiled
     calls, as many as start within a second."""
+    return execute(
+        prepare(
+            scene,
+            method,
+            t1=t1,
+            n_steps=n_steps,
+            n_save=n_save,
+            dtype=dtype,
+            y0=y0,
+            ensemble=ensemble,
+            progress=progress,
+        )
+    )
+
+
+def run_all(scene: Scene, methods: list[Method], **kwargs) -> list[Outcome]:
+    """`run` of each of `methods` on `scene` (same keywords), their solves traced
+    and compiled concurrently, one thread per core: XLA compiles without Python's
+    lock, so one method's compilation overlaps the next one's tracing. The runs
+    then take their turns, alone on the machine, so each wall time is a plain
+    solve's."""
+    workers = max(1, min(len(methods), os.cpu_count() or 1))
+    with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+        prepared = list(pool.map(lambda m: prepare(scene, m, **kwargs), methods))
+    return [execute(p) for p in prepared]
+
+
+def prepare(
+    scene: Scene,
+    method: Method,
+    *,
+    t1: float,
+    n_steps: int,
+    n_save: int,
+    dtype,
+    y0: PyTree[Array],
+    ensemble: bool = False,
+    progress: bool = False,
+) -> Prepared:
+    """The tracked and the plain solve of `run`, traced and compiled for `y0`."""
     first = jax.tree.map(lambda x: x[0], y0) if ensemble else y0
     fixed = method.fixed
     ts = jnp.linspace(0, t1, n_save + 1, dtype=dtype)
@@ -263,6 +318,26 @@ def run(
     # Closures over `solves`: its arrays are constants of the compiled solves.
     tracked = eqx.filter_jit(vmapped(lambda y0: solves.tracked(y0)))
     plain = eqx.filter_jit(vmapped(lambda y0: solves.plain(y0)))
+    return Prepared(
+        scene,
+        y0,
+        ensemble,
+        n_save,
+        tracked.lower(y0).compile(),
+        plain.lower(y0).compile(),
+    )
+
+
+def execute(prepared: Prepared) -> Outcome:
+    """Run the prepared solves: the tracked one for the errors, then the plain one,
+    timed."""
+    scene, y0, ensemble, n_save = (
+        prepared.scene,
+        prepared.y0,
+        prepared.ensemble,
+        prepared.n_save,
+    )
+    tracked, plain = prepared.tracked, prepared.plain
     try:
         errors, final, steps, result = jax.block_until_ready(tracked(y0))
     except eqx.EquinoxRuntimeError as error:
