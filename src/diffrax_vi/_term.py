@@ -184,6 +184,11 @@ class LagrangianTerm(dfx.AbstractTerm):
         index-reduced equations (zero without a constraint). On a group the first
         entry is the velocity $\xi$ (`vf` turns it into $\dot q$) and $\dot p$ the
         Euler–Poincaré equation $\partial^L_q L + \mathrm{ad}^*_\xi p + F$."""
+        if v_guess is None:
+            # The Legendre map's default guess, given here rather than inside, so
+            # that every call (diffrax's check of the term, the stages of a
+            # Runge-Kutta step, both ends of a step's dense output) shares a trace.
+            v_guess = jtu.tree_map(jnp.zeros_like, y[1])
         return _hamilton(self, t, y, args, v_guess)
 
     def _hamilton(self, t, y, args, v_guess):
