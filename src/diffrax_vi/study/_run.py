@@ -340,10 +340,13 @@ def execute(prepared: Prepared) -> Outcome:
     tracked, plain = prepared.tracked, prepared.plain
     try:
         errors, final, steps, result = jax.block_until_ready(tracked(y0))
-    except eqx.EquinoxRuntimeError as error:
+    except (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError) as error:
         # A vector field that cannot return a RESULTS raised (a Runge-Kutta solve of
         # a LagrangianTerm that left where the Legendre map or the constraint
         # forces can be solved): this method's row says why, the others still run.
+        # A compiled program raises equinox's error inside JAX's own.
+        if "EquinoxRuntimeError" not in str(error):
+            raise
         return _failed(scene, y0, ensemble, n_save, error)
     jax.block_until_ready(plain(y0))
     times = []
