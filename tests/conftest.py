@@ -150,7 +150,8 @@ SLOW = (
         )
         for s in ("TrapezoidalVI", "Tsit5")
     ),
-    # The chain is the rigid double pendulum's code with more links: its loops
+    # The chain is the rigid double pendulum's code with more links, its joints
+    # over index ranges (checked scatter-free by test_joints.py): its loops
     # compile for a minute each.
     *(
         f"test_compiled_loops.py::test_no_loop_is_broken_into_kernels[rigid_chain-{s}]"

@@ -1,11 +1,13 @@
 """The structure of the compiled program: every scene's default solves compile their
-time-stepping and Newton loops with no custom call and no custom fusion, which on CPU
+time-stepping and Newton loops with no custom call, no custom fusion and no scatter,
+which on CPU
 would break each loop into separately dispatched kernels (a rigid-body step ran at a
 hundred times its arithmetic that way). A structural test, not a timed one."""
 
 import diffrax as dfx
 import diffrax_vi as dvi
 import jax
+import numpy as np
 import pytest
 from diffrax_vi.diagnostics import compiled_loop_breakers, loop_breakers
 
@@ -66,3 +68,26 @@ def test_the_check_finds_a_small_matrix_product_in_a_loop():
     found = compiled_loop_breakers(loop, a, b)
     assert len(found) == 1 and "__ynn_fusion" in found[0]
     assert loop_breakers(jax.jit(loop).lower(a, b[:, :3]).compile().as_text()) == []
+
+
+def test_the_check_finds_a_scatter_in_a_loop():
+    # Rows taken by an index array: a gather, whose derivative is a scatter; XLA on
+    # CPU then runs the loop kernel by kernel (no `xla_cpu_small_call`).
+    rows = np.array([0, 2])
+
+    def loop(x, take):
+        def body(c, _):
+            force = jax.grad(lambda y: jax.numpy.sum(jax.numpy.sin(take(y))))(c)
+            return c + force, None
+
+        return jax.lax.scan(body, x, None, length=4)[0]
+
+    x = jax.numpy.ones((4, 3))
+    by_array = lambda y: y[rows]
+    by_slices = lambda y: y[0:3:2]
+    text = jax.jit(lambda x: loop(x, by_array)).lower(x).compile().as_text()
+    found = loop_breakers(text)
+    assert found and all("(scatter)" in b for b in found)
+    assert "xla_cpu_small_call" not in text
+    text = jax.jit(lambda x: loop(x, by_slices)).lower(x).compile().as_text()
+    assert loop_breakers(text) == [] and "xla_cpu_small_call" in text

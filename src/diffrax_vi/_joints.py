@@ -15,8 +15,9 @@ Leyendecker, Marsden & Ortiz (2008)). A hinge adds that an axis $n_i$ of body $i
 stays along an axis $n_j$ of body $j$ (or a fixed axis): two more values, the
 components of $R_j n_j$ along two body-$i$ directions normal to $n_i$.
 
-Small products are written as sums (`_so3.matvec`), so that a solve's compiled
-loop holds no matrix-product kernel (`diagnostics.loop_breakers`).
+Small products are written as sums (`_so3.matvec`) and the joined bodies are taken
+by static slices (`_rows`), so that a solve's compiled loop holds no matrix-product
+kernel and no scatter (`diagnostics.loop_breakers`).
 """
 
 from collections.abc import Sequence
@@ -68,6 +69,19 @@ def _bodies(q: Q, joint: str) -> tuple[Array, Array]:
         )
     x, R = q
     return x, R
+
+
+def _rows(a: Array, indices: tuple[int, ...]) -> Array:
+    """`a[np.asarray(indices)]` by static slices: a range (the links of a chain) is
+    one strided slice, other indices are single rows joined. An index array would
+    be a gather, whose derivative (the constraint forces `G^T lambda`) is a scatter,
+    and XLA on CPU runs a loop holding a scatter as kernels one by one (a 4-link
+    chain's step took 20 times a 2-link one's)."""
+    start, *rest = indices
+    step = rest[0] - start if rest else 1
+    if step > 0 and indices == tuple(range(start, indices[-1] + 1, step)):
+        return a[start : indices[-1] + 1 : step]
+    return jnp.concatenate([a[i : i + 1] for i in indices])
 
 
 def _check_range(joint: str, indices: tuple[int, ...], n: int) -> None:
@@ -124,12 +138,12 @@ class BallJoint(eqx.Module):
         """Where each joint's two points are in space, each `(k, 3)`."""
         x, R = _bodies(q, "BallJoint")
         _check_range("BallJoint", self.body + (self.other or ()), x.shape[0])
-        i = np.asarray(self.body)
-        here = x[i] + matvec(R[i], self.point.astype(R.dtype))
+        i = self.body
+        here = _rows(x, i) + matvec(_rows(R, i), self.point.astype(R.dtype))
         if self.other is None:
             return here, self.other_point.astype(x.dtype)
-        j = np.asarray(self.other)
-        return here, x[j] + matvec(R[j], self.other_point.astype(R.dtype))
+        j = self.other
+        return here, _rows(x, j) + matvec(_rows(R, j), self.other_point.astype(R.dtype))
 
     def __call__(self, t: RealScalarLike, q: Q, args: Args) -> Float[Array, " m"]:
         here, there = self.attachment(q)
@@ -194,14 +208,12 @@ class HingeJoint(eqx.Module):
 
     def __call__(self, t: RealScalarLike, q: Q, args: Args) -> Float[Array, " m"]:
         x, R = _bodies(q, "HingeJoint")
-        i = np.asarray(self.ball.body)
+        body = _rows(R, self.ball.body)
         if self.ball.other is None:
             axis = self.other_axis.astype(R.dtype)
         else:
-            axis = matvec(
-                R[np.asarray(self.ball.other)], self.other_axis.astype(R.dtype)
-            )
-        u, w = (matvec(R[i], n.astype(R.dtype)) for n in self.normals)
+            axis = matvec(_rows(R, self.ball.other), self.other_axis.astype(R.dtype))
+        u, w = (matvec(body, n.astype(R.dtype)) for n in self.normals)
         aligned = jnp.stack(
             [jnp.sum(u * axis, axis=-1), jnp.sum(w * axis, axis=-1)], axis=-1
         )

@@ -2,13 +2,16 @@ r"""What keeps XLA from compiling a time-stepping loop as one function on CPU.
 
 XLA's CPU compiler runs a `while` loop as one compiled function only if its body is
 small (the threshold `import diffrax_vi` raises, see `_xla.py`) *and* holds no custom
-call (a LAPACK routine, a host callback) and no custom fusion. A matrix product
-with a side of more than three can become such a fusion (`kind=kCustom`, a YNNPACK
-`__ynn_fusion`); so can the batched products that `jax.vmap` or a Jacobian makes
-of a small `R @ x`. The loop is then broken into kernels dispatched one by one,
-each step paying for every one of them: about a hundred times the arithmetic of a
-rigid-body step. The cure is to write small products as elementwise sums
-(`jnp.sum(R * x, axis=-1)` for `R @ x`), and small solves in closed form.
+call (a LAPACK routine, a host callback), no custom fusion and no scatter. A matrix
+product with a side of more than three can become such a fusion (`kind=kCustom`, a
+YNNPACK `__ynn_fusion`); so can the batched products that `jax.vmap` or a Jacobian
+makes of a small `R @ x`. A scatter comes from `x.at[i].set(...)` or from the
+derivative of indexing by an array, `x[np.array([1, 2])]` (a gather). The loop is
+then broken into kernels dispatched one by one, each step paying for every one of
+them: about a hundred times the arithmetic of a rigid-body step. The cure is to
+write small products as elementwise sums (`jnp.sum(R * x, axis=-1)` for `R @ x`),
+small solves in closed form, and a selection of rows as static slices
+(`x[1:4]`, `jnp.concatenate([x[2:3], x[0:1]])`).
 
 This module reads the optimised HLO text of a compiled program and lists what, inside
 its loops, breaks them.
@@ -27,6 +30,7 @@ _CALLED = re.compile(
 _BRANCHES = re.compile(r"branch_computations=\{([^}]*)\}")
 _WHILE_BODY = re.compile(r"\swhile\(.*?body=%?([\w.\-]+)")
 _WHILE_CONDITION = re.compile(r"\swhile\(.*?condition=%?([\w.\-]+)")
+_SCATTER = re.compile(r"\sscatter\(")
 
 
 def _computations(hlo: str) -> dict[str, list[str]]:
@@ -55,8 +59,8 @@ def _called(line: str) -> list[str]:
 def loop_breakers(hlo: str) -> list[str]:
     """The instructions inside the `while` loops of an optimised HLO module (the text
     of `jax.jit(f).lower(...).compile().as_text()`) that keep XLA on CPU from
-    compiling the loop as one function: custom calls and custom fusions. Empty for a
-    loop at its floor.
+    compiling the loop as one function: custom calls, custom fusions and scatters.
+    Empty for a loop at its floor.
 
     **Arguments:**
 
@@ -84,7 +88,11 @@ def loop_breakers(hlo: str) -> list[str]:
     found = []
     for name in sorted(seen):
         for line in computations[name]:
-            if "custom-call(" in line or "kind=kCustom" in line:
+            if (
+                "custom-call(" in line
+                or "kind=kCustom" in line
+                or _SCATTER.search(line)
+            ):
                 found.append(_describe(line))
     return found
 
@@ -94,7 +102,12 @@ def _describe(line: str) -> str:
     target = re.search(r'custom_call_target="([^"]+)"', line)
     kind = re.search(r'"kind":"([^"]+)"', line)
     op = re.search(r'op_name="([^"]+)"', line)
-    what = target.group(1) if target else (kind.group(1) if kind else "kCustom")
+    if target:
+        what = target.group(1)
+    elif _SCATTER.search(line):
+        what = "scatter"
+    else:
+        what = kind.group(1) if kind else "kCustom"
     return f"{name} ({what}) from {op.group(1) if op else 'an unnamed operation'}"
 
 
@@ -112,7 +125,9 @@ def compiled_loop_breakers(fn, *args, **kwargs) -> list[str]:
 
     A custom fusion named `__ynn_fusion` comes from a small matrix product: write it
     as an elementwise sum. A custom call to `lapack_…` comes from a linear solve or a
-    decomposition in the loop: write it in closed form.
+    decomposition in the loop: write it in closed form. A `scatter` comes from
+    `.at[...]` updates or from differentiating indexing by an array: take the rows
+    by static slices.
     """
     compiled = jax.jit(fn).lower(*args, **kwargs).compile()
     return loop_breakers(compiled.as_text())

@@ -54,10 +54,15 @@ class NBodyLagrangian(AbstractSeparableLagrangian):
     gravitational_constant: Float[Array, ""] = eqx.field(converter=jnp.asarray)
 
     def potential(self, t, q, args):
+        # Every pair by broadcasting, the pairs i < j kept by a fixed mask: taking
+        # them by index arrays would differentiate to a scatter, which keeps XLA
+        # on CPU from compiling the loop whole (`diagnostics.loop_breakers`).
         m = self.mass[:, 0]
-        i, j = np.triu_indices(q.shape[0], 1)
-        distance = jnp.sqrt(jnp.sum((q[i] - q[j]) ** 2, axis=-1))
-        return -self.gravitational_constant * jnp.sum(m[i] * m[j] / distance)
+        pairs = np.triu(np.ones((q.shape[0],) * 2, bool), 1)
+        squared = jnp.sum((q[:, None] - q[None]) ** 2, axis=-1)
+        distance = jnp.sqrt(jnp.where(pairs, squared, 1.0))
+        terms = jnp.where(pairs, m[:, None] * m[None] / distance, 0.0)
+        return -self.gravitational_constant * jnp.sum(terms)
 
 
 def _linear_momentum(t, y, args):
