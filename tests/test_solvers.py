@@ -505,3 +505,33 @@ def test_simplified_newton_takes_newtons_steps_without_lapack_lu():
         assert max_abs_diff(ours, jax.tree.map(lambda x: x[None], scene.y0)) > 0.1
         # No LAPACK LU (getrf); the start's checks keep theirs, outside the loop.
         assert "getrf" not in compiled.as_text()
+
+
+def test_rolled_elimination_is_the_unrolled_one():
+    """Newton's dense solves beyond 16 unknowns (constrained steps) factorise in a
+    loop over the columns, which compiles in constant time: the same pivots and
+    factors as the unrolled elimination, solutions to numpy's within round-off,
+    including a matrix that needs row swaps, and the singular case still shows as a
+    zero pivot ratio (the step's singular-Jacobian test)."""
+    from diffrax_vi._linear import (
+        dense_lu_solve,
+        rolled_lu_factor,
+        unrolled_lu_factor,
+    )
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(20, 20))
+    a[0, 0] = 0.0  # The first column's pivot is in another row.
+    b = rng.normal(size=20)
+    lu_rolled, perm_rolled = jax.jit(rolled_lu_factor)(a)
+    lu_unrolled, perm_unrolled = jax.jit(unrolled_lu_factor)(a)
+    np.testing.assert_array_equal(perm_rolled, perm_unrolled)
+    np.testing.assert_allclose(lu_rolled, lu_unrolled, rtol=0, atol=1e-12)
+    assert not np.array_equal(perm_rolled, np.arange(20))
+    x, ratio = jax.jit(lambda a, b: dense_lu_solve(a, b, 16))(a, b)
+    np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=1e-10)
+    assert 0 < ratio <= 1
+    singular = a.copy()
+    singular[:, 5] = singular[:, 3]
+    _, ratio = jax.jit(lambda a, b: dense_lu_solve(a, b, 16))(singular, b)
+    assert ratio < 1e-12

@@ -37,6 +37,7 @@ from equinox import AbstractClassVar, AbstractVar
 from jaxtyping import Array, Int, PyTree, Scalar
 
 from ._linear import (
+    dense_lu_solve,
     krylov_solve,
     pivot_ratio,
     unrolled_lu_apply,
@@ -50,6 +51,7 @@ from ._tolerance import (
     FAST_CONTRACTION,
     KRYLOV_FLOOR,
     MAX_HALVINGS,
+    NEWTON_DENSE_MAX,
     newton_is_dense,
     newton_tolerance,
     ROUNDOFF_RESIDUAL,
@@ -175,7 +177,9 @@ class Newton(AbstractNewtonFamily):
 
     - `rtol`: the dimensionless tolerance; `None` for $\sqrt\epsilon$ of the dtype.
     - `linear_solver`: `"auto"` (dense up to 16 unknowns, Krylov beyond), `"dense"`,
-        `"krylov"`, or any `lineax.AbstractLinearSolver`.
+        `"krylov"`, or any `lineax.AbstractLinearSolver`. Dense solves take no
+        LAPACK call: an unrolled elimination up to 16 unknowns, the same elimination
+        in a loop over the columns beyond (it compiles in constant time).
     - `damped`: backtrack along each Newton direction until the residual decreases
         and stays finite: convergence from a poor start for monotone problems such
         as the inverse Legendre map of a relativistic particle.
@@ -236,8 +240,8 @@ class Newton(AbstractNewtonFamily):
                 delta, result = sol.value, optx.RESULTS.promote(sol.result)
             elif self.dense(y):
                 flat_f, _ = jax.flatten_util.ravel_pytree(f)
-                flat_delta, pivot_ratio = unrolled_lu_solve(
-                    operator.as_matrix(), flat_f
+                flat_delta, pivot_ratio = dense_lu_solve(
+                    operator.as_matrix(), flat_f, NEWTON_DENSE_MAX
                 )
                 delta = jax.flatten_util.ravel_pytree(y)[1](flat_delta)
                 result = optx.RESULTS.successful

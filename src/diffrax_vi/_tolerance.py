@@ -30,8 +30,9 @@ NEWTON_DENSE_MAX = 16
 # indefinite saddle-point Jacobian. A matrix-free solve takes it by BiCGStab with the
 # normal equations as its fallback, which compiled in 30 s against 8 s for the dense
 # LU on `scenes.rigid_double_pendulum` (18 unknowns) and broke down on
-# `scenes.rigid_chain(links=8)` (72). Such systems are factorised densely, unrolled
-# up to this size (`_solver/unknowns.constrained_solver`).
+# `scenes.rigid_chain(links=8)` (72). Such systems are factorised densely up to this
+# size without LAPACK (`_solver/unknowns.constrained_solver`): unrolled up to
+# `NEWTON_DENSE_MAX` unknowns, rolled into a loop beyond (`_linear.dense_lu_solve`).
 CONSTRAINED_DENSE_MAX = 128
 
 

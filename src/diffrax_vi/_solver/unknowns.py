@@ -137,8 +137,9 @@ class StepEquations(eqx.Module):
 
 def constrained_solver(guess: PyTree) -> str | lx.AbstractLinearSolver:
     """Newton's linear solver for constrained step equations, whose Jacobian is an
-    indefinite saddle point: a dense factorisation at every size, unrolled up to
-    `CONSTRAINED_DENSE_MAX` unknowns and LAPACK's beyond (a loop breaker, but a
+    indefinite saddle point: a dense factorisation at every size, without LAPACK up
+    to `CONSTRAINED_DENSE_MAX` unknowns (`_linear.dense_lu_solve`: unrolled, then
+    rolled into a loop) and LAPACK's beyond (a loop breaker, but a
     step of that size costs far more than the kernels' dispatch). Matrix-free
     solves (BiCGStab, then the normal equations) broke down on
     `scenes.rigid_chain(links=8)`, 72 unknowns, at every step size."""
