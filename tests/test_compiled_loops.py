@@ -19,9 +19,14 @@ SOLVERS = {
 }
 
 
-def _solve(scene, solver):
+def _make(solver):
+    return dvi.LGVI() if solver == "LGVI" else SOLVERS[solver]()
+
+
+def _solve(scene, solver, adjoint=None):
     term = dvi.terms_for(solver, scene.term())
     h = scene.period / 50
+    adjoint = dfx.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
 
     def run(y0):
         return dfx.diffeqsolve(
@@ -33,6 +38,7 @@ def _solve(scene, solver):
             y0,
             args=scene.args,
             saveat=dfx.SaveAt(t1=True),
+            adjoint=adjoint,
             max_steps=8,
         ).ys
 
@@ -50,8 +56,7 @@ CASES = [(scene, solver) for scene in dvi.scenes.SCENES for solver in SOLVERS] +
 @pytest.mark.parametrize("scene,solver", CASES)
 def test_no_loop_is_broken_into_kernels(scene, solver):
     scene = dvi.scenes.SCENES[scene]()
-    make = dvi.LGVI if solver == "LGVI" else SOLVERS[solver]
-    breakers = compiled_loop_breakers(_solve(scene, make()), scene.y0)
+    breakers = compiled_loop_breakers(_solve(scene, _make(solver)), scene.y0)
     if solver == "Tsit5" and not scene.term().mass_checked:
         assert breakers and all("python_cpu_callback" in b for b in breakers)
     else:
@@ -82,24 +87,8 @@ def test_no_loop_of_a_gradient_is_broken_into_kernels(scene, solver, adjoint):
     LU, whose LAPACK calls and host-callback checks broke the backward loops into
     kernels (a heavy top's gradient ran 12x slower)."""
     scene = dvi.scenes.SCENES[scene]()
-    make = dvi.LGVI if solver == "LGVI" else SOLVERS[solver]
-    term, h = scene.term(), scene.period / 50
-
-    def loss(y0):
-        sol = dfx.diffeqsolve(
-            term,
-            make(),
-            0.0,
-            8 * h,
-            h,
-            y0,
-            args=scene.args,
-            saveat=dfx.SaveAt(t1=True),
-            adjoint=ADJOINTS[adjoint](),
-            max_steps=8,
-        )
-        return sum(jax.numpy.sum(x) for x in jax.tree.leaves(sol.ys))
-
+    solve = _solve(scene, _make(solver), ADJOINTS[adjoint]())
+    loss = lambda y0: sum(jax.numpy.sum(x) for x in jax.tree.leaves(solve(y0)))
     assert compiled_loop_breakers(jax.grad(loss), scene.y0) == []
 
 

@@ -637,7 +637,7 @@ def solve(
         if not newton_is_dense(tree_size(guess)):
             # Larger systems keep optimistix's implicit differentiation (lineax's
             # LAPACK LU): the rolled elimination made a 64-mass chain's
-            # MidpointVI gradient 1.2-2.8x slower (`_implicit_solve`).
+            # MidpointVI gradient 1.2-2.8x slower (CHANGELOG).
             return find(residual, guess, preconditioner, carry)
         return _implicit_solve(find, residual, guess, preconditioner, carry)
 
@@ -665,9 +665,9 @@ def _implicit_solve(find, residual, guess, preconditioner, carry) -> Solved:
     breaks it into kernels dispatched one by one (`diagnostics.loop_breakers`).
     Gradients of the Kepler, double pendulum, free rigid body, heavy top and
     four-bar solves run 3.9-11.7x faster, the same to round-off
-    (`benchmarks/gradient_loops.py`). A Jacobian
-    singular at the root (which a Newton-type solve has already reported as
-    `RESULTS.singular`) gives a gradient that is not finite."""
+    (`benchmarks/gradient_loops.py`). A Jacobian singular at the root (which a
+    Newton-type solve has already reported as `RESULTS.singular`) gives a gradient
+    that is not finite."""
     fn = eqx.filter_closure_convert(residual, guess)
     structure = {}
 
