@@ -151,11 +151,17 @@ def run(name, lagrangian, y0, h, n, repeats, implicit=True):
 
         return jax.lax.scan(update, y0, None, length=n)[0]
 
-    t_sv = best_time(solve(terms_pair, plain), y0, repeats=repeats)
-    t_sv_kahan = best_time(solve(terms_pair, dvi.StormerVerlet()), y0, repeats=repeats)
-    t_scan = best_time(bare_scan, y0, repeats=repeats)
-    t_sie = best_time(solve(terms_pair, dfx.SemiImplicitEuler()), y0, repeats=repeats)
-    t_scan_sie = best_time(bare_scan_sie, y0, repeats=repeats)
+    t_sv, t_sv_kahan, t_scan, t_sie, t_scan_sie = best_times(
+        [
+            solve(terms_pair, plain),
+            solve(terms_pair, dvi.StormerVerlet()),
+            bare_scan,
+            solve(terms_pair, dfx.SemiImplicitEuler()),
+            bare_scan_sie,
+        ],
+        y0,
+        repeats=repeats,
+    )
     us = lambda t: 1e6 * t / n
     print(f"\n{name}: {n} steps, per-step wall time (best of {repeats})")
     print(f"  bare lax.scan, kick-drift-kick     {us(t_scan):9.3f} us")

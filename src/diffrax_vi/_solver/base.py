@@ -24,7 +24,7 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, P, Q, RealScalarLike, V
 from .._lagrangian import momentum_offset
-from .._misc import split_state, state_dtype, sum_is_finite
+from .._misc import all_finite, split_state, state_dtype
 from .._private_api import AdjointTerm, NoForwardingSolverMeta, unvmap_any, WrapTerm
 from .._space import departure, is_euclidean, retract, velocity
 from .._term import LagrangianTerm
@@ -310,7 +310,7 @@ def step_result(result: dfx.RESULTS, y1: PyTree) -> tuple[PyTree, dfx.RESULTS]:
     does; a method that can fail by itself reports a non-finite start as such, see
     `start_result`). A failed step's output is NaN: diffrax keeps the output of the
     step that failed, and an unconverged iterate must never pass for a state."""
-    nonfinite = (result == dfx.RESULTS.successful) & ~sum_is_finite(y1)
+    nonfinite = (result == dfx.RESULTS.successful) & ~all_finite(y1)
     result = dfx.RESULTS.where(nonfinite, dfx.RESULTS.nonfinite, result)
     ok = result == dfx.RESULTS.successful
     return jtu.tree_map(lambda x: jnp.where(ok, x, jnp.nan), y1), result

@@ -32,7 +32,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool
 
 from .._lagrangian import AbstractRigidBodyLagrangian, mass_regular
-from .._misc import sum_is_finite
+from .._misc import all_finite
 from .._root_finders import Newton, solve
 from .._so3 import SO3
 from .._space import left_gradient, retract, transport
@@ -191,7 +191,7 @@ class LGVI(
         # A NaN or inf start is `nonfinite`, whatever the solve says of it: checked
         # on twelve numbers without a branch (a conditional costs the loop more).
         result = dfx.RESULTS.where(
-            sum_is_finite((step.q0, step.p0)), result, dfx.RESULTS.nonfinite
+            all_finite((step.q0, step.p0)), result, dfx.RESULTS.nonfinite
         )
         v = dq / h
         new = LGVIState(torque1, v, state.last, state.regular)

@@ -8,7 +8,7 @@ import jax.tree_util as jtu
 from jaxtyping import ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, P, Q, RealScalarLike
-from .._misc import all_finite, split_state, sum_is_finite, tree_add
+from .._misc import all_finite, split_state, tree_add
 from .base import (
     AbstractComposableSolver,
     AbstractSymplecticSolver,
@@ -182,7 +182,7 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractComposableSolver):
             compensation = (comp_q, comp_p)
         y1 = (q1, p1)
         result = dfx.RESULTS.where(
-            sum_is_finite(p1), dfx.RESULTS.successful, dfx.RESULTS.nonfinite
+            all_finite(p1), dfx.RESULTS.successful, dfx.RESULTS.nonfinite
         )
         dense_info = dict(
             y0=y0,

@@ -24,7 +24,7 @@ from .._lagrangian import (
     momentum,
     velocity,
 )
-from .._misc import all_finite, sum_is_finite, tree_size
+from .._misc import all_finite, tree_size
 from .._private_api import unvmap_any
 from .._root_finders import AbstractVIRootFinder, FixedPoint, Newton, solve, Solved
 from .._spectrum import symmetric_extremes
@@ -323,7 +323,7 @@ def start_result(
     d2L/dv2 is singular, or the Lagrangian gave NaN); else `result`."""
     failed = unvmap_any(~state_ok | (result != dfx.RESULTS.successful))
     start_ok = lax.cond(
-        failed, lambda: sum_is_finite((step.q0, step.p0)), lambda: jnp.array(True)
+        failed, lambda: all_finite((step.q0, step.p0)), lambda: jnp.array(True)
     )
     result = dfx.RESULTS.where(state_ok, result, why)
     return dfx.RESULTS.where(start_ok, result, dfx.RESULTS.nonfinite)
