@@ -26,7 +26,8 @@ Then `TrapezoidalVI` on `scenes.rigid_chain(links=n)` for each `--links`: its tr
 and compile time and its time per step, to show how the constrained step's cost
 grows with the chain (dense Jacobians: not linear).
 
-Run: `taskset -c 1 python benchmarks/multibody.py [--steps 1000000] [--links 2,4,8,16]`.
+Run: `taskset -c 1 python benchmarks/multibody.py [--steps 1000000] [--links 2,4,8,16]
+[--chain-only]`.
 """
 
 import argparse
@@ -387,6 +388,8 @@ def chain_costs(links_list, steps=400, per_period=400):
         start = time.perf_counter()
         compiled = jax.jit(solve).lower(scene.y0, jnp.asarray(h)).compile()
         build = time.perf_counter() - start
+        breakers = dvi.diagnostics.loop_breakers(compiled.as_text())
+        kinds = sorted({b.split(" (")[1].split(")")[0] for b in breakers})
         n, m = 6 * links, 3 * links
         _, result = compiled(scene.y0, jnp.asarray((steps + 10) * h))
         if result != dfx.RESULTS.successful:
@@ -402,7 +405,8 @@ def chain_costs(links_list, steps=400, per_period=400):
             best = min(best, (long - (time.perf_counter() - start)) / steps)
         print(
             f"  {links:3d} links ({n} coordinates, {m} multipliers): trace + compile "
-            f"{build:6.1f} s, {best * 1e6:8.1f} us per step"
+            f"{build:6.1f} s, {best * 1e6:8.1f} us per step, "
+            f"{len(breakers)} loop breakers {kinds}"
         )
 
 
@@ -412,7 +416,13 @@ def main():
     parser.add_argument("--samples", type=int, default=10_000)
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--links", default="2,4,8,16")
+    parser.add_argument(
+        "--chain-only", action="store_true", help="only the rigid_chain section"
+    )
     args = parser.parse_args()
+    if args.chain_only:
+        chain_costs([int(n) for n in args.links.split(",")])
+        return
     versions = ", ".join(
         f"{p} {importlib.metadata.version(p)}" for p in ("jax", "diffrax", "mujoco")
     )
