@@ -152,7 +152,10 @@ SLOW = (
     ),
     # The chain is the rigid double pendulum's code with more links, its joints
     # over index ranges (checked scatter-free by test_joints.py): its loops
-    # compile for a minute each.
+    # compile for a minute each, and its parameter gradient (49 s) and its
+    # invariants under scipy (15 s) repeat the rigid double pendulum's cases.
+    "test_surface.py::test_scene_parameters_are_differentiable[rigid_chain",
+    "test_scenes.py::test_conserved_quantities_are_conserved_by_solve_ivp[rigid_chain",
     *(
         f"test_compiled_loops.py::test_no_loop_is_broken_into_kernels[rigid_chain-{s}]"
         for s in ("MidpointVI", "TrapezoidalVI", "Tsit5")
