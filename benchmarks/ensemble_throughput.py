@@ -44,8 +44,9 @@ def throughput(trajectory, scene, n, steps):
     return n * steps / (time.perf_counter() - start)
 
 
-def bare_scan_throughput(scene, n, steps, h, unroll=1):
-    force = jax.grad(lambda q: -scene.lagrangian.potential(0.0, q, None))
+def bare_trajectory(force, steps, h, unroll=1):
+    """A bare `lax.scan` of the uncompensated kick-drift-kick update, `y0` to the
+    state after `steps` steps of `h`."""
 
     def trajectory(y0):
         def step(carry, _):
@@ -56,12 +57,11 @@ def bare_scan_throughput(scene, n, steps, h, unroll=1):
 
         return jax.lax.scan(step, y0, length=steps, unroll=unroll)[0]
 
-    return throughput(trajectory, scene, n, steps)
+    return trajectory
 
 
-def diffeqsolve_throughput(scene, n, steps, h):
-    solver = StormerVerlet(False)
-    terms = separable_terms(scene.lagrangian)
+def solve_trajectory(terms, solver, steps, h):
+    """A plain `diffeqsolve` of `steps` fixed steps of `h`, `y0` to its final state."""
 
     def trajectory(y0):
         sol = dfx.diffeqsolve(
@@ -76,6 +76,17 @@ def diffeqsolve_throughput(scene, n, steps, h):
         )
         return sol.ys
 
+    return trajectory
+
+
+def bare_scan_throughput(scene, n, steps, h, unroll=1):
+    force = jax.grad(lambda q: -scene.lagrangian.potential(0.0, q, None))
+    return throughput(bare_trajectory(force, steps, h, unroll), scene, n, steps)
+
+
+def diffeqsolve_throughput(scene, n, steps, h):
+    terms = separable_terms(scene.lagrangian)
+    trajectory = solve_trajectory(terms, StormerVerlet(False), steps, h)
     return throughput(trajectory, scene, n, steps)
 
 

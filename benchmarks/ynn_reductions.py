@@ -30,45 +30,18 @@ DOT_ONLY = "--xla_cpu_experimental_ynn_fusion_type=dot"
 
 
 def child(repeats: int) -> None:
-    import diffrax as dfx
     import jax
     import jax.numpy as jnp
 
     jax.config.update("jax_enable_x64", True)
     import diffrax_vi as dvi
     from diffrax_vi.diagnostics import loop_breakers
+    from ensemble_throughput import bare_trajectory, solve_trajectory
     from step_cost import best_time, Chain
 
     scene = dvi.scenes.kepler()
     h = scene.period / 200
     force = jax.grad(lambda q: -scene.lagrangian.potential(0.0, q, None))
-
-    def solve(terms, solver, steps, h=h):
-        def f(y0):
-            return dfx.diffeqsolve(
-                terms,
-                solver,
-                0.0,
-                steps * h,
-                h,
-                y0,
-                saveat=dfx.SaveAt(t1=True),
-                max_steps=steps,
-            ).ys
-
-        return f
-
-    def bare(steps, force, h=h):
-        def f(y0):
-            def update(carry, _):
-                q, p = carry
-                p = p + 0.5 * h * force(q)
-                q = q + h * p
-                return (q, p + 0.5 * h * force(q)), None
-
-            return jax.lax.scan(update, y0, None, length=steps)[0]
-
-        return f
 
     rows = []
 
@@ -85,14 +58,15 @@ def child(repeats: int) -> None:
         name = f"{members} Kepler orbits (vmap)"
         loop(
             f"{name}, StormerVerlet(plain)",
-            jax.vmap(solve(pair, dvi.StormerVerlet(False), 2000)),
+            jax.vmap(solve_trajectory(pair, dvi.StormerVerlet(False), 2000, h)),
             y0,
             2000,
         )
-        loop(f"{name}, its bare scan", jax.vmap(bare(2000, force)), y0, 2000)
+        bare = jax.vmap(bare_trajectory(force, 2000, h))
+        loop(f"{name}, its bare scan", bare, y0, 2000)
         loop(
             f"{name}, MidpointVI",
-            jax.vmap(solve(term, dvi.MidpointVI(), 200)),
+            jax.vmap(solve_trajectory(term, dvi.MidpointVI(), 200, h)),
             y0,
             200,
         )
@@ -100,9 +74,10 @@ def child(repeats: int) -> None:
     chain_force = jax.grad(lambda q: -chain.potential(0.0, q, None))
     y0 = (jnp.sin(jnp.linspace(0, jnp.pi, 4096)), jnp.zeros(4096))
     pair = dvi.separable_terms(chain)
-    steps = solve(pair, dvi.StormerVerlet(), 2000, h=0.02)
+    steps = solve_trajectory(pair, dvi.StormerVerlet(), 2000, 0.02)
     loop("4096-mass chain, StormerVerlet", steps, y0, 2000)
-    loop("4096-mass chain, its bare scan", bare(2000, chain_force, h=0.02), y0, 2000)
+    bare = bare_trajectory(chain_force, 2000, 0.02)
+    loop("4096-mass chain, its bare scan", bare, y0, 2000)
 
     x = jnp.linspace(0.0, 1.0, 1 << 20)
     a = jnp.linspace(0.0, 1.0, 1 << 22).reshape(2048, 2048)
