@@ -615,31 +615,8 @@ def solve(
     largest term, so that its own tolerances are relative."""
     dtype = tree_dtype(guess)
     if isinstance(root_finder, AbstractVIRootFinder):
-
-        def find(fn, guess, preconditioner, carry):
-            sol = optx.root_find(
-                lambda w, _: fn(w),
-                root_finder,
-                guess,
-                options=dict(preconditioner=preconditioner, carry=carry),
-                has_aux=True,
-                max_steps=max_steps,
-                tags=tags,
-                throw=False,
-            )
-            return Solved(
-                sol.value,
-                dfx.RESULTS.promote(sol.result),
-                root_finder.pivot_ratio(sol.state),
-                root_finder.final_carry(sol.state),
-            )
-
-        if not newton_is_dense(tree_size(guess)):
-            # Larger systems keep optimistix's implicit differentiation (lineax's
-            # LAPACK LU): the rolled elimination made a 64-mass chain's
-            # MidpointVI gradient 1.2-2.8x slower (CHANGELOG).
-            return find(residual, guess, preconditioner, carry)
-        return _implicit_solve(find, residual, guess, preconditioner, carry)
+        find = _finder(root_finder, max_steps, tags)
+        return _differentiated(find, residual, guess, preconditioner, carry)
 
     def relative(w, _):
         r, s = residual(w)
@@ -654,6 +631,70 @@ def solve(
     return Solved(
         sol.value, dfx.RESULTS.promote(sol.result), jnp.ones((), dtype), carry
     )
+
+
+def _finder(root_finder: AbstractVIRootFinder, max_steps: int, tags: frozenset):
+    """`find(fn, guess, preconditioner, carry) -> Solved`: `optimistix.root_find`
+    of `fn` (returning `(r, s)`) by `root_finder`."""
+
+    def find(fn, guess, preconditioner, carry):
+        sol = optx.root_find(
+            lambda w, _: fn(w),
+            root_finder,
+            guess,
+            options=dict(preconditioner=preconditioner, carry=carry),
+            has_aux=True,
+            max_steps=max_steps,
+            tags=tags,
+            throw=False,
+        )
+        return Solved(
+            sol.value,
+            dfx.RESULTS.promote(sol.result),
+            root_finder.pivot_ratio(sol.state),
+            root_finder.final_carry(sol.state),
+        )
+
+    return find
+
+
+def _differentiated(find, residual, guess, preconditioner, carry) -> Solved:
+    """`find(residual, guess, preconditioner, carry)`, differentiated by the implicit
+    function theorem at the root it returns."""
+    if not newton_is_dense(tree_size(guess)):
+        # Larger systems keep optimistix's implicit differentiation of each
+        # `optimistix.root_find` (lineax's LAPACK LU): the rolled elimination made
+        # a 64-mass chain's MidpointVI gradient 1.2-2.8x slower (CHANGELOG).
+        return find(residual, guess, preconditioner, carry)
+    return _implicit_solve(find, residual, guess, preconditioner, carry)
+
+
+def solve_with_fallback(
+    residual: Callable[[PyTree], tuple[PyTree, PyTree]],
+    guess: PyTree,
+    first: tuple[AbstractVIRootFinder, int],
+    fallback: tuple[AbstractVIRootFinder, int],
+    *,
+    preconditioner: PyTree | None = None,
+    tags: frozenset = frozenset(),
+) -> Solved:
+    """`solve` by the root finder `first[0]` in at most `first[1]` iterations, and
+    where it fails by `fallback` from the same guess (`tags` are the fallback's).
+    The root is differentiated once, whichever found it: a gradient's program holds
+    one implicit derivative of the step rather than one per root finder."""
+    first_find = _finder(*first, frozenset())
+    fallback_find = _finder(*fallback, tags)
+
+    def find(fn, guess, preconditioner, carry):
+        solved = first_find(fn, guess, preconditioner, carry)
+        failed = unvmap_any(solved.result != dfx.RESULTS.successful)
+        return lax.cond(
+            failed,
+            lambda: fallback_find(fn, guess, preconditioner, carry),
+            lambda: solved,
+        )
+
+    return _differentiated(find, residual, guess, preconditioner, None)
 
 
 def _implicit_solve(find, residual, guess, preconditioner, carry) -> Solved:

@@ -26,7 +26,14 @@ from .._lagrangian import (
 )
 from .._misc import all_finite, tree_size
 from .._private_api import unvmap_any
-from .._root_finders import AbstractVIRootFinder, FixedPoint, Newton, solve, Solved
+from .._root_finders import (
+    AbstractVIRootFinder,
+    FixedPoint,
+    Newton,
+    solve,
+    solve_with_fallback,
+    Solved,
+)
 from .._spectrum import symmetric_extremes
 from .._tolerance import (
     CONSTRAINED_DENSE_MAX,
@@ -215,25 +222,21 @@ class FixedPointThenNewton(AbstractStepRootFinding):
             linear_solver = constrained_solver(guess)
         else:
             linear_solver = "auto"
-        newton = lambda: solve(
+        newton = Newton(linear_solver=linear_solver)
+        if equations.inverse_mass is None:
+            solved = solve(
+                equations.residual, guess, newton, max_steps, tags=equations.tags
+            )
+            return solved, False
+        solved = solve_with_fallback(
             equations.residual,
             guess,
-            Newton(linear_solver=linear_solver),
-            max_steps,
+            (FixedPoint(), self.fixed_point_steps_factor * max_steps),
+            (newton, max_steps),
             preconditioner=equations.inverse_mass,
             tags=equations.tags,
         )
-        if equations.inverse_mass is None:
-            return newton(), False
-        fixed = solve(
-            equations.residual,
-            guess,
-            FixedPoint(),
-            self.fixed_point_steps_factor * max_steps,
-            preconditioner=equations.inverse_mass,
-        )
-        failed = fixed.result != dfx.RESULTS.successful
-        return lax.cond(unvmap_any(failed), newton, lambda: fixed), False
+        return solved, False
 
 
 def root_finding(
