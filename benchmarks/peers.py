@@ -1,8 +1,8 @@
 """Our symplectic steps against blackjax's integrators, side by side in one process.
 
 Kepler (e = 0.6, 200 steps per orbit, 1000 orbits), float64, one core: per-step wall
-time saving only the final state, and the largest energy error over the run (from a
-separate run that saves 1000 states), for
+time saving only the final state (every run timed in turns with the others), and the
+largest energy error over the run (from a separate run that saves 1000 states), for
 
 - Störmer–Verlet: `StormerVerlet` in `diffrax.diffeqsolve` against blackjax's
   `velocity_verlet` in a `jax.lax.scan`;
@@ -11,7 +11,12 @@ separate run that saves 1000 states), for
 - the implicit midpoint step: `MidpointVI` against blackjax's `implicit_midpoint`
   (fixed-point iteration) at its default tolerance and at one tight enough to match
   our energy error; and `MidpointVI(root_finder=FixedPoint(rtol=tol))`, the same
-  iteration stopped at the same tolerance (ours relative to the step's terms).
+  iteration stopped at the same tolerance (ours relative to the step's terms);
+- what compensated summation costs, and where: bare `jax.lax.scan`s of the yoshida4
+  composition of kick-drift-kick steps with plain sums, with compensated (Kahan)
+  sums in every substep (what `Composition` of a compensated `StormerVerlet` does),
+  and with the substeps' increments summed in plain arithmetic and compensated once
+  per composed step, beside ours compensated and plain, all timed in turns.
 
 blackjax is in the `bench` extra. Run: `python benchmarks/peers.py [--xla-default]`
 (both settings are recorded: `results/peers_cpu.txt`, `results/peers_default_cpu.txt`).
@@ -36,7 +41,7 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 from step_cost import (  # noqa: E402
     add_xla_option,
     apply_xla_option,
-    best_time,
+    best_times,
     Kepler,
 )
 
@@ -100,10 +105,90 @@ def theirs(one_step, y0, h, n):
     return final, saved
 
 
-def measure(final, saved, y0, n, e0, repeats):
-    ns = 1e9 * best_time(final, y0, repeats=repeats) / n
-    q, p = saved(y0)
-    return ns, float(jnp.max(jnp.abs(_energy(q, p) - e0)))
+def _kepler_force(q):
+    r2 = jnp.sum(q**2)
+    return -q / (r2 * jnp.sqrt(r2))
+
+
+def _kahan(y, increment, compensation):
+    """`y + increment` compensated: the sum and the new compensation."""
+    corrected = increment - compensation
+    y1 = y + corrected
+    return y1, (y1 - y) - corrected
+
+
+def bare_yoshida4(h, n, compensation):
+    """A bare scan of yoshida4 over kick-drift-kick steps on Kepler:
+    `compensation` is `"none"` (plain sums), `"substep"` (each substep's
+    increments added by Kahan's summation) or `"step"` (the substeps' increments
+    summed in plain arithmetic from the step's start, the sum added to the state by
+    Kahan's summation once per composed step)."""
+    gammas = dvi.Composition(dvi.StormerVerlet(), "yoshida4").scheme.coefficients
+
+    def increments(q, p, force, step):
+        """(dq, dp, force at the end) of one kick-drift-kick step from (q, p)."""
+        dq = step * (p + 0.5 * step * force)
+        end = _kepler_force(q + dq)
+        return dq, 0.5 * step * (force + end), end
+
+    def update(carry, _):
+        q, p, force, cq, cp = carry
+        if compensation == "step":
+            sq, sp = jnp.zeros_like(q), jnp.zeros_like(p)
+            for gamma in gammas:
+                dq, dp, force = increments(q + sq, p + sp, force, gamma * h)
+                sq, sp = sq + dq, sp + dp
+            (q, cq), (p, cp) = _kahan(q, sq, cq), _kahan(p, sp, cp)
+            return (q, p, force, cq, cp), None
+        for gamma in gammas:
+            dq, dp, force = increments(q, p, force, gamma * h)
+            if compensation == "substep":
+                (q, cq), (p, cp) = _kahan(q, dq, cq), _kahan(p, dp, cp)
+            else:
+                q, p = q + dq, p + dp
+        return (q, p, force, cq, cp), None
+
+    @jax.jit
+    def run(y0):
+        q, p = y0
+        zero = jnp.zeros_like(q)
+        start = (q, p, _kepler_force(q), zero, zero)
+        return jax.lax.scan(update, start, None, length=n)[0][:2]
+
+    return run
+
+
+def compensation_floor(pair, y0, h, n, repeats):
+    """Compensated over plain yoshida4: ours, and the bare scans' floors."""
+    plain = dvi.Composition(dvi.StormerVerlet(compensated=False), "yoshida4")
+    compensated = dvi.Composition(dvi.StormerVerlet(), "yoshida4")
+    plain_ours = ours(pair, plain, y0, h, n)[0]
+    compensated_ours = ours(pair, compensated, y0, h, n)[0]
+    bare = {c: bare_yoshida4(h, n, c) for c in ("none", "substep", "step")}
+    reference = compensated_ours(y0)
+    for compensation, run in bare.items():
+        gap = max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(run(y0), reference))
+        assert gap < 1e-9, f"the bare yoshida4 ({compensation}) differs by {gap}"
+    fns = [plain_ours, compensated_ours, *bare.values()]
+    t = dict(
+        zip(
+            ["plain", "compensated", "none", "substep", "step"],
+            best_times(fns, y0, repeats=repeats),
+        )
+    )
+    ns = lambda key: 1e9 * t[key] / n
+    print(
+        f"\nyoshida4 on Kepler, compensated over plain sums, ns per step (timed in "
+        f"turns): where compensation is the floor\n"
+        f"  ours: Composition(StormerVerlet(), 'yoshida4') {ns('compensated'):6.1f} ns,"
+        f" plain {ns('plain'):6.1f} ns: {t['compensated'] / t['plain']:.2f}x\n"
+        f"  bare scan, plain sums                          {ns('none'):6.1f} ns"
+        f" (ours plain: {t['plain'] / t['none']:.2f}x)\n"
+        f"  bare scan, compensated in every substep        {ns('substep'):6.1f} ns:"
+        f" {t['substep'] / t['none']:.2f}x plain\n"
+        f"  bare scan, compensated once per composed step  {ns('step'):6.1f} ns:"
+        f" {t['step'] / t['none']:.2f}x plain"
+    )
 
 
 def main():
@@ -127,27 +212,11 @@ def main():
     kinetic = metrics.default_metric(jnp.ones(2)).kinetic_energy
     logdensity = lambda q: -_potential(q)
 
-    measured = {}
-
-    def once(run):
-        # A run that appears in two rows is measured once: one number each.
-        if id(run) not in measured:
-            measured[id(run)] = measure(*run, y0, n, e0, args.repeats)
-        return measured[id(run)]
+    rows = []
 
     def row(name, ours_run, their_run):
-        ns_ours, err_ours = once(ours_run)
-        ns_theirs, err_theirs = once(their_run)
-        print(
-            f"  {name:<44} {ns_ours:7.1f} ns  {err_ours:8.1e}  |  {ns_theirs:7.1f} ns"
-            f"  {err_theirs:8.1e}  |  {ns_ours / ns_theirs:5.2f}x"
-        )
+        rows.append((name, ours_run, their_run))
 
-    print(
-        f"Kepler e = {E}, {PER_ORBIT} steps per orbit, {ORBITS} orbits ({n} steps): "
-        "ns per step, max energy error"
-    )
-    print(f"  {'ours | blackjax':<44} {'ours':>21}  |  {'blackjax':>19}  |  ratio")
     plain = dvi.StormerVerlet(compensated=False)
     row(
         "StormerVerlet(plain) | velocity_verlet",
@@ -186,6 +255,27 @@ def main():
             ours(term, dvi.MidpointVI(root_finder=dvi.FixedPoint(rtol=tol)), y0, h, n),
             implicit_midpoint,
         )
+    # Every run timed in turns with all the others, one number each (a run in two
+    # rows is timed once): the machine's slow spells fall on every ratio alike.
+    runs = list({id(r): r for _, a, b in rows for r in (a, b)}.values())
+    times = best_times([final for final, _ in runs], y0, repeats=args.repeats)
+    ns = {id(r): 1e9 * t / n for r, t in zip(runs, times)}
+    error = {}
+    for run in runs:
+        q, p = run[1](y0)
+        error[id(run)] = float(jnp.max(jnp.abs(_energy(q, p) - e0)))
+    print(
+        f"Kepler e = {E}, {PER_ORBIT} steps per orbit, {ORBITS} orbits ({n} steps): "
+        "ns per step (all runs timed in turns), max energy error"
+    )
+    print(f"  {'ours | blackjax':<44} {'ours':>21}  |  {'blackjax':>19}  |  ratio")
+    for name, a, b in rows:
+        a, b = id(a), id(b)
+        print(
+            f"  {name:<44} {ns[a]:7.1f} ns  {error[a]:8.1e}  |  {ns[b]:7.1f} ns"
+            f"  {error[b]:8.1e}  |  {ns[a] / ns[b]:5.2f}x"
+        )
+    compensation_floor(pair, y0, h, n, args.repeats)
 
 
 if __name__ == "__main__":

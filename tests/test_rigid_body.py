@@ -185,6 +185,29 @@ def test_a_zero_moment_of_inertia_or_mass_is_singular_not_a_nan(solver):
             assert solve().result == dfx.RESULTS.singular
 
 
+@pytest.mark.parametrize(
+    "solver",
+    [dvi.LGVI(), dvi.Composition(dvi.LGVI(), "yoshida4")],
+    ids=["LGVI", "yoshida4(LGVI)"],
+)
+def test_lgvi_reports_a_non_finite_start_as_nonfinite(solver):
+    """A NaN attitude or an infinite momentum is `nonfinite` at the first step,
+    whatever Newton's method makes of it, and before a singular inertia."""
+    scene = dvi.scenes.free_rigid_body()
+    R0, pi0 = scene.y0
+    lag = scene.lagrangian
+    flat = type(lag)(jnp.array([1.0, 0.0, 1.0]), lag.centre, lag.weight)
+    solve = lambda lagrangian, y0: dfx.diffeqsolve(
+        dvi.LagrangianTerm(lagrangian), solver, 0.0, 1.0, 0.1, y0, throw=False
+    )
+    for lagrangian in (lag, flat):
+        for y0 in ((R0.at[1, 2].set(jnp.nan), pi0), (R0, pi0.at[0].set(jnp.inf))):
+            sol = solve(lagrangian, y0)
+            assert sol.result == dfx.RESULTS.nonfinite
+            assert sol.stats["num_steps"] == 1
+    assert solve(lag, scene.y0).result == dfx.RESULTS.successful
+
+
 def test_runge_kutta_on_a_rigid_body_runs_as_on_eulers_equations():
     """The velocity Pi / J is settled when the term is built: Tsit5 on the term
     takes the same steps as on Euler's equations written by hand, with no check in
