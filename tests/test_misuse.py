@@ -456,3 +456,34 @@ def test_a_run_that_raises_is_a_row_of_the_study():
     assert rows["Tsit5"].result.startswith("raised: The constraint forces cannot")
     assert rows["Tsit5+PID"].result == "successful"
     assert "1 run(s) failed" in study.verdict()
+
+
+def test_an_integer_mass_is_a_mass():
+    """`mass=2` as typed (an integer) steps as `mass=2.0` does, under the partitioned
+    terms and the LagrangianTerm: not a numpy error about a dtype that is not
+    inexact. (Under JAX's standard dtype promotion, as a user runs it: this suite
+    runs strict promotion, under which JAX refuses integer arithmetic with float
+    states wherever it meets it.)"""
+    potential = lambda t, q, args: 0.5 * jnp.sum(q**2)
+    y0 = (jnp.array([1.0, 0.5]), jnp.array([0.0, 0.3]))
+    cases = [
+        (dvi.separable_terms, dvi.StormerVerlet()),
+        (dvi.LagrangianTerm, dvi.MidpointVI()),
+        (dvi.LagrangianTerm, dvi.TrapezoidalVI()),
+        (dvi.LagrangianTerm, dfx.Tsit5()),
+    ]
+    with jax.numpy_dtype_promotion("standard"):
+        for make_terms, solver in cases:
+            ys = [
+                dfx.diffeqsolve(
+                    make_terms(dvi.SeparableLagrangian(potential, mass=mass)),
+                    solver,
+                    0.0,
+                    1.0,
+                    0.1,
+                    y0,
+                ).ys
+                for mass in (2, 2.0)
+            ]
+            for a, b in zip(*ys):
+                np.testing.assert_array_equal(a, b)

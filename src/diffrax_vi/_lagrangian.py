@@ -212,13 +212,15 @@ def constant_mass(lagrangian: AbstractLagrangian, p: P) -> P | None:
     if isinstance(lagrangian, AbstractSeparableLagrangian):
         return broadcast_mass(lagrangian.mass, p)
     if isinstance(lagrangian, AbstractRigidBodyLagrangian):
-        return jnp.broadcast_to(jnp.asarray(lagrangian.inertia), jnp.shape(p))
+        inertia = _floating(jnp.asarray(lagrangian.inertia), p)
+        return jnp.broadcast_to(inertia, jnp.shape(p))
     if isinstance(lagrangian, AbstractMultibodyLagrangian):
         p_x, p_r = p
-        mass = jnp.asarray(lagrangian.mass)[..., None]
+        mass = _floating(jnp.asarray(lagrangian.mass), p_x)[..., None]
+        inertia = _floating(jnp.asarray(lagrangian.inertia), p_r)
         return (
             jnp.broadcast_to(mass, jnp.shape(p_x)),
-            jnp.broadcast_to(jnp.asarray(lagrangian.inertia), jnp.shape(p_r)),
+            jnp.broadcast_to(inertia, jnp.shape(p_r)),
         )
     return None
 
@@ -323,8 +325,17 @@ class TangentLift(AbstractLagrangian):
         return tangent
 
 
+def _floating(mass: ArrayLike, like: ArrayLike) -> ArrayLike:
+    """An integer mass (`mass=2`, as typed) in the dtype of `like`; any other as it
+    is."""
+    if jnp.issubdtype(jnp.result_type(mass), jnp.inexact):
+        return mass
+    return jnp.asarray(mass, jnp.result_type(like))
+
+
 def broadcast_mass(mass: PyTree[ArrayLike], q: Q) -> Q:
-    """The mass as a PyTree with the structure of `q` (a scalar mass is shared)."""
+    """The mass as a PyTree with the structure of `q` (a scalar mass is shared), an
+    integer mass in the dtype of `q`."""
     if jtu.tree_structure(mass) == jtu.tree_structure(q):
         for m, qi in zip(jtu.tree_leaves(mass), jtu.tree_leaves(q)):
             try:
@@ -338,10 +349,10 @@ def broadcast_mass(mass: PyTree[ArrayLike], q: Q) -> Q:
                     "freedom, a scalar, or a shape that broadcasts (e.g. (bodies, 1) "
                     "for positions of shape (bodies, 3))."
                 )
-        return mass
+        return jtu.tree_map(_floating, mass, q)
     if len(jtu.tree_leaves(mass)) == 1 and jnp.ndim(jtu.tree_leaves(mass)[0]) == 0:
         (m,) = jtu.tree_leaves(mass)
-        return jtu.tree_map(lambda _: m, q)
+        return jtu.tree_map(lambda qi: _floating(m, qi), q)
     raise ValueError(
         f"The mass must be a scalar or a PyTree with the structure of q; got mass "
         f"structure {jtu.tree_structure(mass)} and q structure "
@@ -422,11 +433,15 @@ def mass_regular(mass: PyTree[ArrayLike], like: PyTree) -> Bool[Array, ""]:
     """Whether a diagonal mass is invertible to working precision: finite, and no
     entry below `n eps` of the largest in magnitude (a zero mass, or one so small
     that `p / m` loses every digit)."""
-    leaves = [jnp.abs(jnp.asarray(m)) for m in jtu.tree_leaves(mass)]
+    dtype = jnp.result_type(*jtu.tree_leaves(like))
+    if not jnp.issubdtype(dtype, jnp.inexact):
+        # An integer mass (`mass=2`) checked against itself: in the default float.
+        dtype = jnp.result_type(float)
+    leaves = [jnp.abs(jnp.asarray(m, dtype)) for m in jtu.tree_leaves(mass)]
     largest = jnp.max(jnp.stack([jnp.max(m) for m in leaves]))
     smallest = jnp.min(jnp.stack([jnp.min(m) for m in leaves]))
     n = sum(jnp.size(x) for x in jtu.tree_leaves(like))
-    threshold = singular_threshold(n, jnp.result_type(*jtu.tree_leaves(like)))
+    threshold = singular_threshold(n, dtype)
     return jnp.isfinite(largest) & (smallest > threshold * largest)
 
 
