@@ -646,8 +646,10 @@ def test_constrained_midpoint_iterates_as_without_constraints(scale):
     on velocity and multipliers together. Both solve the same equations: on a
     Cartesian double pendulum (2 constraints, unequal masses) with an anharmonic
     potential and a positional drive, `FixedPoint()` alone, the default policy and
-    `Newton()` agree to round-off over 400 steps, in any units, and the ends stay on
-    the constraints."""
+    `Newton()` agree to round-off over 100 steps, in any units, and the ends stay on
+    the constraints. (Over 400 steps the chaotic pendulum amplifies the round-off of
+    either solve about tenfold per second: up to 2e-12 relative in the momentum, which
+    measures the chaos rather than the solvers.)"""
     mass = jnp.array([1.0, 1.0, 0.5, 0.5]) * scale
     gravity = 9.81 * scale
 
@@ -670,19 +672,19 @@ def test_constrained_midpoint_iterates_as_without_constraints(scale):
             term,
             dvi.MidpointVI(root_finder=root_finder),
             0.0,
-            4.0,
+            1.0,
             0.01,
             (q0, jnp.zeros(4)),
             args=args,
-            max_steps=500,
+            max_steps=100,
         )
         assert sol.result == dfx.RESULTS.successful
         finals.append(sol.ys)
     fixed, default, newton = finals
     for other in (default, newton):
-        assert max_abs_diff(fixed[0], other[0]) < 1e-13
-        assert max_abs_diff(fixed[1], other[1]) < 2e-13 * scale
+        assert max_abs_diff(fixed[0], other[0]) < 1e-14
+        assert max_abs_diff(fixed[1], other[1]) < 5e-14 * scale
     q1 = np.asarray(fixed[0][0])
-    assert np.max(np.abs(np.asarray(_double_pendulum_rods(4.0, q1, args)))) < 1e-13
+    assert np.max(np.abs(np.asarray(_double_pendulum_rods(1.0, q1, args)))) < 1e-13
     # The anharmonic spring and the rods moved the bob: not a trivial motion.
     assert abs(float(fixed[0][0][2] - q0[2])) > 0.1
