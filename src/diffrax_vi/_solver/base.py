@@ -135,17 +135,22 @@ def compensated_add(
 
 
 def advance(
-    space: PyTree, y0: PyTree, increment: PyTree, compensation: PyTree | None
+    space: PyTree,
+    y0: PyTree,
+    increment: PyTree,
+    compensation: PyTree | None,
+    q1: PyTree | None = None,
 ) -> tuple[PyTree, PyTree | None]:
     r"""`y0 = (q0, p0)` moved by the step's increments `(dq, dp)`: the position
-    through its configuration space, $q_0 \oplus dq$, and every sum compensated.
-    In a space with a group factor the position is not a sum: it moves without
-    compensation, a product's vector factor included (its compensation stays
-    zero); the momentum's sum is compensated."""
+    through its configuration space, $q_0 \oplus dq$ (`q1` where the method has
+    computed it), and every sum compensated. In a space with a group factor the
+    position is not a sum: it moves without compensation, a product's vector factor
+    included (its compensation stays zero); the momentum's sum is compensated."""
     if is_euclidean(space):
         return compensated_add(y0, increment, compensation)
     (q0, p0), (dq, dp) = y0, increment
-    q1 = retract(space, q0, dq)
+    if q1 is None:
+        q1 = retract(space, q0, dq)
     if compensation is None:
         return (q1, jtu.tree_map(lambda a, b: a + b, p0, dp)), None
     p1, compensation_p = compensated_add(p0, dp, compensation[1])
@@ -281,7 +286,9 @@ class MethodStep(eqx.Module):
     state, whether the step succeeded, for a term with an applied force the work of
     the method's discrete forces over the step (`None` without one), and the space
     whose retraction moves the position by `dq`, where the method has its own
-    (`None`: the Lagrangian's)."""
+    (`None`: the Lagrangian's), and on a group the position that retraction reaches,
+    where the method has computed it for its own equations (`None`: `advance`
+    retracts)."""
 
     dq: Q
     dp: P
@@ -290,6 +297,7 @@ class MethodStep(eqx.Module):
     result: dfx.RESULTS
     work: Array | None = None
     space: PyTree | None = None
+    q1: Q | None = None
 
 
 class VIState(eqx.Module):
@@ -450,7 +458,7 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         )
         out = self.method_step(step, solver_state.method, made_jump)
         space = step.term.lagrangian.space if out.space is None else out.space
-        y1, compensation = advance(space, y0, (out.dq, out.dp), compensation)
+        y1, compensation = advance(space, y0, (out.dq, out.dp), compensation, out.q1)
         y1, result = step_result(out.result, y1)
         dense_info = hermite_dense_info(step, y0, y1, out.v)
         work = solver_state.work

@@ -195,7 +195,7 @@ class LGVI(
         )
         v = dq / h
         new = LGVIState(torque1, v, state.last, state.regular)
-        return MethodStep(dq, dp, v, new, result, space=_CAYLEY)
+        return MethodStep(dq, dp, v, new, result, space=_CAYLEY, q1=q1)
 
 
 LGVI.__init__.__doc__ = """**Arguments:**
