@@ -176,7 +176,7 @@ def compensation_floor(plain_ours, compensated_ours, y0, h, n, repeats):
     ns = lambda key: 1e9 * t[key] / n
     print(
         f"\nyoshida4 on Kepler, compensated over plain sums, ns per step (timed in "
-        f"turns): where compensation is the floor\n"
+        f"turns): what compensation costs\n"
         f"  ours: Composition(StormerVerlet(), 'yoshida4') {ns('compensated'):6.1f} ns,"
         f" plain {ns('plain'):6.1f} ns: {t['compensated'] / t['plain']:.2f}x\n"
         f"  bare scan, plain sums                          {ns('none'):6.1f} ns"

@@ -134,6 +134,19 @@ def tree_max_abs(tree: PyTree) -> Array:
     return jnp.max(jnp.stack(leaves))
 
 
+def has_loop(jaxpr: jex.Jaxpr) -> bool:
+    """Whether a traced program contains a `while` or `scan` (at any depth)."""
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name in ("while", "scan"):
+            return True
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, (tuple, list)) else (param,):
+                sub = getattr(sub, "jaxpr", sub)
+                if hasattr(sub, "eqns") and has_loop(sub):
+                    return True
+    return False
+
+
 def reads(fn, x: PyTree, *rest) -> bool:
     """Whether `fn(x, *rest)` reads `x` at all, decided from its traced program: an
     output counts as reading `x` if any operation on the way to it takes a value

@@ -21,7 +21,7 @@ import numpy as np
 from jaxtyping import Array, PyTree
 
 from ._custom_types import Args, RealScalarLike
-from ._misc import all_finite
+from ._misc import all_finite, has_loop
 from ._private_api import assert_term_compatible, use_stepsize_tol
 
 
@@ -131,19 +131,6 @@ def _first_non_finite(ts, ys, reached, steps, result, per_interval):
 UNROLL = 4
 
 
-def _has_loop(jaxpr) -> bool:
-    """Whether a traced program contains a `while` or `scan` (at any depth)."""
-    for eqn in jaxpr.eqns:
-        if eqn.primitive.name in ("while", "scan"):
-            return True
-        for param in eqn.params.values():
-            for sub in param if isinstance(param, (tuple, list)) else (param,):
-                sub = getattr(sub, "jaxpr", sub)
-                if hasattr(sub, "eqns") and _has_loop(sub):
-                    return True
-    return False
-
-
 def solve_fixed_steps(
     terms: PyTree[dfx.AbstractTerm],
     solver: dfx.AbstractSolver,
@@ -237,7 +224,7 @@ def _scan_steps(terms, solver, t0, t1, dt0, y0, args, n, n_save, unroll):
         step = jax.make_jaxpr(
             lambda y, s: solver.step(terms, t0, t1, y, args, s, False)
         )(y0, state)
-        unroll = 1 if _has_loop(step.jaxpr) else UNROLL
+        unroll = 1 if has_loop(step.jaxpr) else UNROLL
 
     def one(carry, _):
         t, k, y, state, result, steps, reached = carry

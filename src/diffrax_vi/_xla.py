@@ -30,6 +30,9 @@ from ._private_api import backends_are_initialized
 # larger threshold made them slower); `benchmarks/scaling.py` measures both.
 SMALL_LOOP_BYTES = 1 << 22
 
+# XLA's own threshold, bytes.
+XLA_DEFAULT_BYTES = 1024
+
 # Set (to anything but "" or "0") before `import diffrax_vi` to keep XLA's default.
 OPT_OUT = "DIFFRAX_VI_XLA_DEFAULT"
 
@@ -71,6 +74,14 @@ def _without_ours(flags: str) -> str:
 
 def _raised_by_user(flags: str) -> bool:
     return re.search(rf"\b{_OPTION}=", _without_ours(flags)) is not None
+
+
+def small_loops_compiled_whole() -> bool:
+    """Whether the CPU threshold in `XLA_FLAGS` (this package's or the user's) is
+    above XLA's default, so that loops of more than a kilobyte's worth of state are
+    compiled as one function."""
+    match = re.search(rf"\b{_OPTION}=(\d+)", os.environ.get("XLA_FLAGS", ""))
+    return match is not None and int(match.group(1)) > XLA_DEFAULT_BYTES
 
 
 def _too_late(what: str, fix: str) -> RuntimeError:
