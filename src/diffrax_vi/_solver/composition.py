@@ -394,7 +394,8 @@ class Composition(AbstractSymplecticSolver, AbstractComposableSolver):
         # would run kernel by kernel where the small inner loop runs as one function
         # (yoshida4 1.5x, kahan_li8 3.4x slower). An implicit substep's root find
         # stays in the loop: unrolled, kahan_li8 of MidpointVI compiled in 18.5
-        # against 0.55 s and stepped 2.4 times slower.
+        # against 0.55 s and stepped 2.4 times slower. Not measured on GPUs, where
+        # the loop stays.
         first = jax.tree.map(lambda x: x[0], xs)
         unroll = (
             jax.default_backend() == "cpu"
