@@ -212,8 +212,8 @@ def test_lgvi_moves_the_attitude_once_per_step(monkeypatch):
     """The step computes its new attitude R0 cay(f) for the torque at the end and
     hands it to the engine (`MethodStep.q1`), which moves the state with it instead
     of retracting again: a second 3 x 3 product per step, 4% of the heavy top's
-    step. Retractions counted over one step run without jit; the states are bitwise
-    those of the engine's own retraction over 50 steps."""
+    step. Retractions counted over one step run without jit; over 50 steps the
+    states are those of the engine's own retraction, to round-off (bitwise here)."""
     import dataclasses
 
     from diffrax_vi._solver import base, lgvi
@@ -226,7 +226,7 @@ def test_lgvi_moves_the_attitude_once_per_step(monkeypatch):
     scene = _TOP()
     term = scene.term()
     ours, theirs = (_final(scene, s, 0.5, 0.01).ys for s in (dvi.LGVI(), Retracting()))
-    assert all(bool(jnp.all(a == b)) for a, b in zip(ours, theirs))
+    assert max(float(jnp.max(jnp.abs(a - b))) for a, b in zip(ours, theirs)) < 1e-13
 
     calls = []
     for module in (base, lgvi):
