@@ -390,7 +390,7 @@ class Composition(AbstractSymplecticSolver, AbstractComposableSolver):
         # fuses across substeps, and a compensated sum costs no copy of the state
         # carried from one iteration to the next (Kepler, yoshida4 of
         # Stormer-Verlet: 95 -> 69 ns compensated; kahan_li8 542 -> 373 ns, compiled
-        # in 0.84 against 0.56 s). At XLA's default threshold the unrolled substeps
+        # in 0.52 against 0.24 s). At XLA's default threshold the unrolled substeps
         # would run kernel by kernel where the small inner loop runs as one function
         # (yoshida4 1.5x, kahan_li8 3.4x slower). An implicit substep's root find
         # stays in the loop: unrolled, kahan_li8 of MidpointVI compiled in 18.5
