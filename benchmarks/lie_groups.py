@@ -52,6 +52,7 @@ from step_cost import (  # noqa: E402
     best_time,
     best_times,
     final_state,
+    kahan_add,
 )
 
 
@@ -171,9 +172,7 @@ def bare_lgvi(scene, h, n, compensated=False):
         m1 = torque(R1)
         dp = rmatvec(F, kicked) + 0.5 * h * m1 - pi0
         if compensated:
-            corrected = dp - c
-            pi1 = pi0 + corrected
-            c = (pi1 - pi0) - corrected
+            pi1, c = kahan_add(pi0, dp, c)
         else:
             pi1 = pi0 + dp
         return (R1, pi1, m1, f_new, f, c), None

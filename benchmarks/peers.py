@@ -42,6 +42,7 @@ from step_cost import (  # noqa: E402
     add_xla_option,
     apply_xla_option,
     best_times,
+    kahan_add,
     Kepler,
 )
 
@@ -110,13 +111,6 @@ def theirs(one_step, y0, h, n):
 _kepler_force = jax.grad(lambda q: -_potential(q))
 
 
-def _kahan(y, increment, compensation):
-    """`y + increment` compensated: the sum and the new compensation."""
-    corrected = increment - compensation
-    y1 = y + corrected
-    return y1, (y1 - y) - corrected
-
-
 def bare_yoshida4(h, n, compensation):
     """A bare scan of yoshida4 over kick-drift-kick steps on Kepler:
     `compensation` is `"none"` (plain sums), `"substep"` (each substep's
@@ -138,12 +132,12 @@ def bare_yoshida4(h, n, compensation):
             for gamma in gammas:
                 dq, dp, force = increments(q + sq, p + sp, force, gamma * h)
                 sq, sp = sq + dq, sp + dp
-            (q, cq), (p, cp) = _kahan(q, sq, cq), _kahan(p, sp, cp)
+            (q, cq), (p, cp) = kahan_add(q, sq, cq), kahan_add(p, sp, cp)
             return (q, p, force, cq, cp), None
         for gamma in gammas:
             dq, dp, force = increments(q, p, force, gamma * h)
             if compensation == "substep":
-                (q, cq), (p, cp) = _kahan(q, dq, cq), _kahan(p, dp, cp)
+                (q, cq), (p, cp) = kahan_add(q, dq, cq), kahan_add(p, dp, cp)
             else:
                 q, p = q + dq, p + dp
         return (q, p, force, cq, cp), None

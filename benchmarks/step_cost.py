@@ -101,6 +101,14 @@ def best_times(fns, *args, repeats):
     return [min(spent) for spent in times]
 
 
+def kahan_add(y, increment, compensation):
+    """`y + increment` compensated (Kahan), for the bare scans: the sum and the new
+    compensation."""
+    corrected = increment - compensation
+    y1 = y + corrected
+    return y1, (y1 - y) - corrected
+
+
 def best_time(fn, *args, repeats):
     return best_times([fn], *args, repeats=repeats)[0]
 

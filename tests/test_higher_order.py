@@ -6,6 +6,7 @@ import dataclasses
 import diffrax as dfx
 import diffrax_vi as dvi
 import jax
+import jax.extend.core as jex
 import jax.flatten_util
 import jax.numpy as jnp
 import numpy as np
@@ -192,11 +193,8 @@ def _scans(jaxpr):
     for eqn in jaxpr.eqns:
         if eqn.primitive.name == "scan":
             found.append((eqn.params["length"], eqn.params["unroll"]))
-        for param in eqn.params.values():
-            for sub in param if isinstance(param, (tuple, list)) else (param,):
-                sub = getattr(sub, "jaxpr", sub)
-                if hasattr(sub, "eqns"):
-                    found += _scans(sub)
+        for sub in jex.jaxprs_in_params(eqn.params):
+            found += _scans(sub)
     return found
 
 

@@ -136,15 +136,11 @@ def tree_max_abs(tree: PyTree) -> Array:
 
 def has_loop(jaxpr: jex.Jaxpr) -> bool:
     """Whether a traced program contains a `while` or `scan` (at any depth)."""
-    for eqn in jaxpr.eqns:
-        if eqn.primitive.name in ("while", "scan"):
-            return True
-        for param in eqn.params.values():
-            for sub in param if isinstance(param, (tuple, list)) else (param,):
-                sub = getattr(sub, "jaxpr", sub)
-                if hasattr(sub, "eqns") and has_loop(sub):
-                    return True
-    return False
+    return any(
+        eqn.primitive.name in ("while", "scan")
+        or any(has_loop(sub) for sub in jex.jaxprs_in_params(eqn.params))
+        for eqn in jaxpr.eqns
+    )
 
 
 def reads(fn, x: PyTree, *rest) -> bool:
