@@ -84,6 +84,9 @@ def test_degenerate_lagrangian_is_singular():
     zero_mass = dvi.SeparableLagrangian(lambda t, q, args: jnp.sum(q**2), mass=0.0)
     _, result = dvi.velocity(zero_mass, 0.0, (q, p))
     assert result == dfx.RESULTS.singular
+    # The partitioned terms check a known mass when built.
+    with pytest.raises(ValueError, match="Every degree of freedom needs a positive"):
+        dvi.separable_terms(zero_mass)
 
 
 def test_non_scalar_lagrangian_raises():

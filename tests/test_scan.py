@@ -123,6 +123,38 @@ def test_bad_times_raise():
         jax.jit(lambda t1: dvi.solve_fixed_steps(terms, solver, 0.0, t1, 0.1, y0))(1.0)
 
 
+@pytest.mark.parametrize(
+    "solver",
+    [
+        dvi.StormerVerlet(),
+        dvi.MidpointVI(),
+        dvi.Composition(dvi.StormerVerlet(), "yoshida4"),
+        dvi.LinearizedVI(),
+    ],
+    ids=["StormerVerlet", "MidpointVI", "Yoshida4", "LinearizedVI"],
+)
+def test_fixed_step_programs_hold_no_host_callback(solver):
+    """JAX's persistent compilation cache stores no program that holds a host
+    callback. solve_fixed_steps knows its times when traced, so the start's check of
+    them is made then, and a variational solve of a vector-space Lagrangian holds
+    none: a repeated run reads it from the cache. diffeqsolve traces its times, and
+    checks them at run time; both raise for NaN times."""
+    terms = dvi.terms_for(solver, SCENE.lagrangian)
+
+    def text(solve):
+        return jax.jit(solve).lower(SCENE.y0).as_text()
+
+    fixed = text(lambda y0: dvi.solve_fixed_steps(terms, solver, 0.0, 1.0, 0.1, y0))
+    general = text(
+        lambda y0: dfx.diffeqsolve(terms, solver, 0.0, 1.0, 0.1, y0, throw=False).ys
+    )
+    assert "callback" not in fixed
+    assert "callback" in general
+    # The trace-time check itself, on a first step whose end is NaN.
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        solver.init(terms, jnp.asarray(0.0), jnp.asarray(jnp.nan), SCENE.y0, None)
+
+
 def test_study_fixed_step_path_equals_diffeqsolve_path():
     # Without a progress meter the study runs fixed steps in the scan; with one, in
     # diffeqsolve. The recorded errors are the same to round-off. (MidpointVI's

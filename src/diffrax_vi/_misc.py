@@ -1,3 +1,4 @@
+import equinox as eqx
 import jax
 import jax.extend.core as jex
 import jax.numpy as jnp
@@ -132,6 +133,29 @@ def tree_max_abs(tree: PyTree) -> Array:
     """The largest `|x|` over every leaf."""
     leaves = [jnp.max(jnp.abs(x), initial=0.0) for x in jtu.tree_leaves(tree)]
     return jnp.max(jnp.stack(leaves))
+
+
+def at_trace_time(fn, *xs):
+    """`fn(*xs)`, computed when traced where every array in `xs` is known then (so
+    that a check can read it), else traced as usual (under
+    `jax.ensure_compile_time_eval` a traced argument costs far more tracing: 0.16 s
+    for a rigid body's start check)."""
+    if any(isinstance(x, jax.core.Tracer) for x in jtu.tree_leaves(xs)):
+        return fn(*xs)
+    with jax.ensure_compile_time_eval():
+        return fn(*xs)
+
+
+def error_if(x: PyTree, failed: Bool[Array, ""], message: str) -> PyTree:
+    """`x`, or an error if `failed`: a `ValueError` now where `failed` is known when
+    traced (computed from concrete values), else at run time (`eqx.error_if`, a host
+    callback: XLA then no longer compiles a loop around it as one function, and JAX's
+    persistent compilation cache stores no program that holds one)."""
+    if isinstance(failed, jax.core.Tracer):
+        return eqx.error_if(x, failed, message)
+    if failed:
+        raise ValueError(message)
+    return x
 
 
 def has_loop(jaxpr: jex.Jaxpr) -> bool:

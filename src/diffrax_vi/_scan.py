@@ -157,6 +157,11 @@ def solve_fixed_steps(
 
     No dense output, events or progress meter: use `diffeqsolve` for those.
 
+    The solver checks the times when they are traced, so the program of a
+    variational solve in a vector space holds no host callback and JAX's persistent
+    compilation cache can store it (`diffeqsolve` traces its times and checks them
+    with one; a start on a group is checked with one in both).
+
     **Arguments:**
 
     - `terms`, `solver`, `t0`, `t1`, `dt0`, `y0`, `args`: as for
@@ -193,43 +198,53 @@ def solve_fixed_steps(
         )
     if unroll is not None and (not isinstance(unroll, int) or unroll < 1):
         raise ValueError(f"unroll must be a positive integer; got {unroll!r}.")
-    t0, t1, dt0 = (jnp.asarray(x, dtype) for x in (t0, t1, dt0))
-    _check_solver(terms, solver, t0, y0, args)
-    # Compiled with equinox, as diffeqsolve is, so that an error raised inside the
-    # loop (a LagrangianTerm's, under a Runge-Kutta solver) reads as its message,
-    # not as a failed host callback.
-    return _scan_steps(terms, solver, t0, t1, dt0, y0, args, n, n_save, unroll)
-
-
-@eqx.filter_jit
-def _scan_steps(terms, solver, t0, t1, dt0, y0, args, n, n_save, unroll):
-    dtype = t0.dtype
-    per_interval = n // n_save
-    n_t = jnp.asarray(n, dtype)
+    t0, t1, dt0 = (np.asarray(x, dtype) for x in (t0, t1, dt0))
     # diffeqsolve rounds a step end within 100 ulp of t1 to t1.
     t1_floor = t1
     for _ in range(100):
-        t1_floor = jnp.nextafter(t1_floor, jnp.asarray(-jnp.inf, dtype))
+        t1_floor = np.nextafter(t1_floor, np.asarray(-np.inf, dtype))
+    # The solver's `init` is given its first step's times as static Python numbers
+    # (exact in any float dtype), so that it checks them when traced: a check at run
+    # time is a host callback, and JAX's persistent compilation cache stores no
+    # program that holds one.
+    with jax.ensure_compile_time_eval():
+        times = tuple(jnp.asarray(x) for x in (t0, t1, dt0, t1_floor))
+        first = _step_end(jnp.ones((), jnp.int32), *times, n)
+    first_step = (float(t0), float(first))
+    _check_solver(terms, solver, times[0], y0, args)
+    # Compiled with equinox, as diffeqsolve is, so that an error raised inside the
+    # loop (a LagrangianTerm's, under a Runge-Kutta solver) reads as its message,
+    # not as a failed host callback.
+    return _scan_steps(terms, solver, times, first_step, y0, args, n, n_save, unroll)
 
-    def step_end(k):
-        # The end of step k = 1, ..., n as diffrax.ConstantStepSize places it: t0 + dt0
-        # first, then the fraction k / n of the interval, and t1 exactly last.
-        t = t0 + (t1 - t0) * (k.astype(dtype) / n_t)
-        t = jnp.where(k == 1, t0 + dt0, jnp.where(k == n, t1, t))
-        return jnp.where(t > t1_floor, t1, t)
 
-    one_step = jnp.ones((), jnp.int32)
-    state = solver.init(terms, t0, step_end(one_step), y0, args)
+def _step_end(k, t0, t1, dt0, t1_floor, n):
+    """The end of step k = 1, ..., n as diffrax.ConstantStepSize places it: t0 + dt0
+    first, then the fraction k / n of the interval, and t1 exactly last."""
+    dtype = t0.dtype
+    t = t0 + (t1 - t0) * (k.astype(dtype) / jnp.asarray(n, dtype))
+    t = jnp.where(k == 1, t0 + dt0, jnp.where(k == n, t1, t))
+    return jnp.where(t > t1_floor, t1, t)
+
+
+@eqx.filter_jit
+def _scan_steps(terms, solver, times, first_step, y0, args, n, n_save, unroll):
+    t0 = times[0]
+    dtype = t0.dtype
+    per_interval = n // n_save
+    with jax.ensure_compile_time_eval():
+        start, first = (jnp.asarray(x, dtype) for x in first_step)
+    state = solver.init(terms, start, first, y0, args)
     if unroll is None:
         step = jax.make_jaxpr(
-            lambda y, s: solver.step(terms, t0, t1, y, args, s, False)
+            lambda y, s: solver.step(terms, t0, times[1], y, args, s, False)
         )(y0, state)
         unroll = 1 if has_loop(step.jaxpr) else UNROLL
 
     def one(carry, _):
         t, k, y, state, result, steps, reached = carry
         k = k + 1
-        t_next = step_end(k)
+        t_next = _step_end(k, *times, n)
         y, _, _, state, step_result = solver.step(
             terms, t, t_next, y, args, state, False
         )

@@ -20,7 +20,7 @@ from ._lagrangian import (
     mass_regular,
     velocity,
 )
-from ._misc import all_finite, split_state
+from ._misc import all_finite, at_trace_time, error_if, split_state
 from ._space import coadjoint, is_euclidean, velocity as space_velocity
 
 
@@ -288,7 +288,9 @@ def separable_terms(
 
     **Raises:**
 
-    `ValueError` if the Lagrangian is not separable.
+    `ValueError` if the Lagrangian is not separable, or if its mass is singular
+    (a mass traced where the terms are built, inside `jax.jit`, is checked when the
+    solve runs).
     """
     if not isinstance(lagrangian, AbstractSeparableLagrangian):
         raise ValueError(
@@ -300,8 +302,9 @@ def separable_terms(
         )
     # Checked once, here, rather than at every step: a zero mass would give a NaN
     # position that the momentum, which every step checks, need not see.
-    mass = jtu.tree_map(jnp.asarray, lagrangian.mass)
-    mass = eqx.error_if(mass, ~mass_regular(mass, mass), SINGULAR_MASS)
+    mass = at_trace_time(lambda m: jtu.tree_map(jnp.asarray, m), lagrangian.mass)
+    singular = at_trace_time(lambda m: ~mass_regular(m, m), mass)
+    mass = error_if(mass, singular, SINGULAR_MASS)
     return dfx.ODETerm(_SeparableVelocity(mass)), dfx.ODETerm(
         _SeparableForce(lagrangian, force)
     )

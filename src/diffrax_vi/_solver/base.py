@@ -24,7 +24,7 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, P, Q, RealScalarLike, V
 from .._lagrangian import momentum_offset
-from .._misc import all_finite, split_state, state_dtype
+from .._misc import all_finite, at_trace_time, error_if, split_state, state_dtype
 from .._private_api import AdjointTerm, NoForwardingSolverMeta, unvmap_any, WrapTerm
 from .._space import departure, is_euclidean, retract, velocity
 from .._term import LagrangianTerm
@@ -184,17 +184,20 @@ def unwrap_term(terms: dfx.AbstractTerm, solver: str) -> tuple[LagrangianTerm, A
     return terms, direction
 
 
+NON_FINITE_TIMES = (
+    "The first step from t0 to t0 + dt0 (or to t1) is NaN or infinite: check that "
+    "t0, t1 and dt0 are finite numbers. diffeqsolve would otherwise take no step and "
+    "report success."
+)
+
+
 def check_times(t0: RealScalarLike, t1: RealScalarLike, state: PyTree) -> PyTree:
     """`state`, or an error if the first step is not finite: diffeqsolve then takes
-    no step at all and would report success. (Threaded through the solver state, so
-    that it cannot be dropped as unused.)"""
-    return eqx.error_if(
-        state,
-        ~jnp.isfinite(t1 - t0),
-        "The first step from t0 to t0 + dt0 (or to t1) is NaN or infinite: check "
-        "that t0, t1 and dt0 are finite numbers. diffeqsolve would otherwise take no "
-        "step and report success.",
-    )
+    no step at all and would report success. Times known when traced (as
+    `solve_fixed_steps` gives them) are checked then; traced ones at run time,
+    through the solver state (so that the check cannot be dropped as unused)."""
+    failed = at_trace_time(lambda a, b: ~jnp.isfinite(b - a), t0, t1)
+    return error_if(state, failed, NON_FINITE_TIMES)
 
 
 OFF_GROUP = (
@@ -210,13 +213,13 @@ OFF_GROUP = (
 
 def check_on_space(space: PyTree, q0: PyTree, state: PyTree) -> PyTree:
     """`state`, or an error if a start position is off its group (see
-    `_space.departure`); nothing to check in a vector space."""
+    `_space.departure`), when traced where `q0` is known then; nothing to check in
+    a vector space."""
     if is_euclidean(space):
         return state
     dtype = jnp.result_type(*jtu.tree_leaves(q0))
-    return eqx.error_if(
-        state, departure(space, q0) > newton_tolerance(dtype), OFF_GROUP
-    )
+    off = at_trace_time(lambda q: departure(space, q) > newton_tolerance(dtype), q0)
+    return error_if(state, off, OFF_GROUP)
 
 
 class StepInputs(eqx.Module):

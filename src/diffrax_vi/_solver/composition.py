@@ -22,7 +22,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, RealScalarLike
-from .._misc import has_loop
+from .._misc import at_trace_time, has_loop
 from .._tolerance import COEFFICIENT_ATOL, PALINDROME_ATOL, PRODUCT_TOL
 from .._xla import small_loops_compiled_whole
 from .base import (
@@ -321,8 +321,10 @@ class Composition(AbstractSymplecticSolver, AbstractComposableSolver):
         args: Args,
     ) -> PyTree:
         first = float(self.scheme.coefficients[0])
-        # Python floats are weakly typed: they keep float32 times float32.
-        return self.base.init(terms, t0, t0 + first * (t1 - t0), y0, args)
+        # Python floats are weakly typed: they keep float32 times float32. Times known
+        # at trace time stay known, for the base's check of them.
+        t_first = at_trace_time(lambda a, b: a + first * (b - a), t0, t1)
+        return self.base.init(terms, t0, t_first, y0, args)
 
     def step(
         self,

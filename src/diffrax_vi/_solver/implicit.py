@@ -148,12 +148,11 @@ SYMMETRIC_POSITIVE = frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag})
 
 IMPLICIT_ARGS_DOC = """- `root_finder`: how the implicit equations are solved: `None`
     (the default) chooses the fixed-point iteration for a separable Lagrangian, falling
-    back to Newton's method where it does not converge (stiff steps; matrix-free,
-    by conjugate gradients, for the midpoint step), and Newton's
-    method otherwise: by conjugate gradients at every size where its matrix is
-    symmetric (the midpoint step of a Lagrangian whose momentum does not depend on
-    $q$), else with dense LU up to 16 unknowns and matrix-free Krylov iterations
-    beyond; or [`diffrax_vi.Newton`][], [`diffrax_vi.SimplifiedNewton`][],
+    back to Newton's method where it does not converge (stiff steps), and Newton's
+    method otherwise: with dense LU up to 16 unknowns and matrix-free Krylov
+    iterations beyond (conjugate gradients where its matrix is symmetric, as for the
+    midpoint step of a Lagrangian whose momentum does not depend on $q$); or
+    [`diffrax_vi.Newton`][], [`diffrax_vi.SimplifiedNewton`][],
     [`diffrax_vi.FixedPoint`][], or any `optimistix.AbstractRootFinder` (given the
     residual relative to its largest term). Every tolerance is relative to the size
     of the momenta the equations balance, so results do not depend on the units.

@@ -201,12 +201,12 @@ class FixedPointThenNewton(AbstractStepRootFinding):
     method from the same guess where it does not contract (stiff steps); else
     Newton's method.
 
-    Newton's method is matrix-free by conjugate gradients at every size where the
-    Jacobian is symmetric (the midpoint step of a Lagrangian whose momentum is free
-    of `q`), which keeps the loop free of LAPACK calls: XLA on CPU never compiles a
-    loop that contains one whole, even where the branch is never taken. Other
-    equations keep the dense LU of small systems (BiCGStab with its fallback costs
-    seconds of compilation for a branch that stiff steps alone take)."""
+    Newton's method solves its linear systems as `Newton(linear_solver="auto")`
+    does: by an unrolled elimination (no LAPACK call, which XLA on CPU never compiles
+    whole inside a loop) up to 16 unknowns, matrix-free beyond (conjugate gradients
+    where the Jacobian is symmetric and definite, as for the midpoint step of a
+    Lagrangian whose momentum is free of `q`). Constrained step equations take
+    `constrained_solver`'s."""
 
     fixed_point_steps_factor: int = eqx.field(
         static=True, default=FIXED_POINT_STEPS_FACTOR
@@ -216,13 +216,9 @@ class FixedPointThenNewton(AbstractStepRootFinding):
         return None
 
     def solve(self, equations, guess, carry, max_steps):
-        if lx.positive_semidefinite_tag in equations.tags:
-            linear_solver = "krylov"
-        elif equations.constrained:
-            linear_solver = constrained_solver(guess)
-        else:
-            linear_solver = "auto"
-        newton = Newton(linear_solver=linear_solver)
+        newton = Newton(
+            linear_solver=constrained_solver(guess) if equations.constrained else "auto"
+        )
         if equations.inverse_mass is None:
             solved = solve(
                 equations.residual, guess, newton, max_steps, tags=equations.tags
