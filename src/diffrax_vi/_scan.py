@@ -229,7 +229,7 @@ def _step_end(k, t0, t1, dt0, t1_floor, n):
 
 @eqx.filter_jit
 def _scan_steps(terms, solver, times, first_step, y0, args, n, n_save, unroll):
-    t0 = times[0]
+    t0, t1, _, _ = times
     dtype = t0.dtype
     per_interval = n // n_save
     with jax.ensure_compile_time_eval():
@@ -237,7 +237,7 @@ def _scan_steps(terms, solver, times, first_step, y0, args, n, n_save, unroll):
     state = solver.init(terms, start, first, y0, args)
     if unroll is None:
         step = jax.make_jaxpr(
-            lambda y, s: solver.step(terms, t0, times[1], y, args, s, False)
+            lambda y, s: solver.step(terms, t0, t1, y, args, s, False)
         )(y0, state)
         unroll = 1 if has_loop(step.jaxpr) else UNROLL
 
