@@ -103,12 +103,15 @@ def after_jump(
     cached: PyTree,
 ) -> PyTree:
     """What a step starts from: `cached` (kept from the last step), or `recompute()`
-    after a jump, when the cache belongs to the state before it. Where diffrax
-    knows at trace time that no jump happens (`made_jump` is the Python `False`: no
-    events, no jump times), the step takes `cached` with no branch at all, which
-    saves the loop a conditional per step."""
+    after a jump, when the cache belongs to the state before it. Where that is known
+    at trace time there is no branch: `made_jump` is the Python `False` where diffrax
+    knows that no jump happens (no events, no jump times), which saves the loop a
+    conditional per step, and the Python `True` in `ReversibleAdjoint`'s backward
+    steps, which then trace and differentiate one branch instead of two."""
     if made_jump is False:
         return cached
+    if made_jump is True:
+        return recompute()
     return lax.cond(unvmap_any(made_jump), recompute, lambda: cached)
 
 
