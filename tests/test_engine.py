@@ -230,3 +230,34 @@ def test_solver_states_have_names():
     assert jnp.shape(state(dvi.StormerVerlet()).force) == ()
     history = state(dvi.LinearizedVI(velocity="centered")).method
     assert len(history.positions) == 3 and len(history.steps) == 3
+
+
+@pytest.mark.parametrize(
+    "solver", [dvi.StormerVerlet(), dvi.LGVI()], ids=["StormerVerlet", "LGVI"]
+)
+def test_a_jump_known_when_traced_takes_no_branch(solver):
+    """A step told at trace time that it follows a jump (ReversibleAdjoint's
+    backward steps pass the Python True) recomputes its cached force without a
+    conditional, and steps as a step told so at run time does."""
+    import jax
+
+    scene = (
+        dvi.scenes.kepler()
+        if isinstance(solver, dvi.StormerVerlet)
+        else (dvi.scenes.free_rigid_body())
+    )
+    terms = dvi.terms_for(solver, scene.lagrangian)
+    y0, h = scene.y0, scene.period / 100
+    state = solver.init(terms, 0.0, h, y0, scene.args)
+
+    def step(jump):
+        return solver.step(terms, 0.0, h, y0, scene.args, state, jump)[0]
+
+    def conds(jump):
+        jaxpr = jax.make_jaxpr(lambda: step(jump))()
+        return str(jaxpr).count("cond[")
+
+    assert conds(True) < conds(jnp.array(True))
+    known, traced = step(True), step(jnp.array(True))
+    for a, b in zip(jax.tree.leaves(known), jax.tree.leaves(traced)):
+        np.testing.assert_allclose(a, b, rtol=1e-15, atol=0)
