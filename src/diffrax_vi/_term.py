@@ -5,7 +5,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-from jaxtyping import ArrayLike, PyTree
+from jaxtyping import Array, ArrayLike, PyTree
 
 from ._constraint import multiplier_force
 from ._custom_types import Args, RealScalarLike
@@ -70,9 +70,18 @@ def mass_settles_velocity(lagrangian: AbstractLagrangian) -> bool:
         return False
     if any(isinstance(m, jax.core.Tracer) for m in jtu.tree_leaves(mass)):
         return False
-    with jax.ensure_compile_time_eval():
-        mass = jtu.tree_map(jnp.asarray, mass)
-        return bool(mass_regular(mass, mass))
+    return not bool(_mass_checked_when_known(mass)[1])
+
+
+def _mass_checked_when_known(mass: PyTree) -> tuple[PyTree, Array]:
+    """A declared mass as arrays, and whether it is singular: computed when traced
+    where the mass is known then."""
+
+    def check(m):
+        m = jtu.tree_map(jnp.asarray, m)
+        return m, ~mass_regular(m, m)
+
+    return at_trace_time(check, mass)
 
 
 class LagrangianTerm(dfx.AbstractTerm):
@@ -302,8 +311,7 @@ def separable_terms(
         )
     # Checked once, here, rather than at every step: a zero mass would give a NaN
     # position that the momentum, which every step checks, need not see.
-    mass = at_trace_time(lambda m: jtu.tree_map(jnp.asarray, m), lagrangian.mass)
-    singular = at_trace_time(lambda m: ~mass_regular(m, m), mass)
+    mass, singular = _mass_checked_when_known(lagrangian.mass)
     mass = error_if(mass, singular, SINGULAR_MASS)
     return dfx.ODETerm(_SeparableVelocity(mass)), dfx.ODETerm(
         _SeparableForce(lagrangian, force)
