@@ -318,16 +318,28 @@ class VIState(eqx.Module):
     work: Array | None = None
 
 
-def step_result(result: dfx.RESULTS, y1: PyTree) -> tuple[PyTree, dfx.RESULTS]:
-    """The step's output and result: the method's result, or `RESULTS.nonfinite` for
-    a step that succeeded but produced NaN or inf (which a non-finite start always
-    does; a method that can fail by itself reports a non-finite start as such, see
-    `start_result`). A failed step's output is NaN: diffrax keeps the output of the
-    step that failed, and an unconverged iterate must never pass for a state."""
-    nonfinite = (result == dfx.RESULTS.successful) & ~all_finite(y1)
-    result = dfx.RESULTS.where(nonfinite, dfx.RESULTS.nonfinite, result)
+def unless_failed(result: dfx.RESULTS, tree: PyTree) -> PyTree:
+    """`tree`, or NaN throughout if the method failed: diffrax keeps the output of
+    the step that failed, and an unconverged iterate must never pass for a state.
+
+    It depends on the method's result alone, not on the check of the new state
+    (`step_result`), so that the check's reductions stay out of the chain from one
+    step's state to the next's (the unconstrained Cartesian pendulum's
+    TrapezoidalVI: 18 -> 13 ns a step). The engine applies it where it costs least,
+    measured: in a vector space to the summed state (on the increments, before the
+    sum, a MidpointVI step took up to 11% longer), on a group to the increments
+    (LGVI on the heavy top: 128 ns a step, against 136 ns after the step)."""
     ok = result == dfx.RESULTS.successful
-    return jtu.tree_map(lambda x: jnp.where(ok, x, jnp.nan), y1), result
+    return jtu.tree_map(lambda x: jnp.where(ok, x, jnp.nan), tree)
+
+
+def step_result(result: dfx.RESULTS, y1: PyTree) -> dfx.RESULTS:
+    """The step's result: the method's, or `RESULTS.nonfinite` for a step that
+    succeeded but produced NaN or inf (which a non-finite start always does; a method
+    that can fail by itself reports a non-finite start as such, see
+    `start_result`)."""
+    nonfinite = (result == dfx.RESULTS.successful) & ~all_finite(y1)
+    return dfx.RESULTS.where(nonfinite, dfx.RESULTS.nonfinite, result)
 
 
 def hermite_dense_info(
@@ -464,8 +476,13 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         )
         out = self.method_step(step, solver_state.method, made_jump)
         space = step.term.lagrangian.space if out.space is None else out.space
-        y1, compensation = advance(space, y0, (out.dq, out.dp), compensation, out.q1)
-        y1, result = step_result(out.result, y1)
+        if is_euclidean(space):
+            y1, compensation = advance(space, y0, (out.dq, out.dp), compensation)
+            y1 = unless_failed(out.result, y1)
+        else:
+            dq, dp, q1 = unless_failed(out.result, (out.dq, out.dp, out.q1))
+            y1, compensation = advance(space, y0, (dq, dp), compensation, q1)
+        result = step_result(out.result, y1)
         dense_info = hermite_dense_info(step, y0, y1, out.v)
         work = solver_state.work
         if work is not None:
