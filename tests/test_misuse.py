@@ -370,6 +370,28 @@ def test_a_non_finite_force_or_parameter_in_an_implicit_step_is_nonfinite():
                 assert sol.result == dfx.RESULTS.nonfinite, (solver, value)
 
 
+@pytest.mark.parametrize("stages", [1, 2])
+def test_a_non_finite_parameter_under_a_krylov_newton_is_nonfinite(stages):
+    """A Krylov solve from a NaN residual can stop on a finite update (BiCGStab's
+    breakdown): Newton's iterate is then NaN, as after a dense solve, so the step
+    tells a NaN force from a diverged iteration by its root alone."""
+    newton = dvi.Newton(linear_solver="krylov")
+    solver = (
+        dvi.MidpointVI(root_finder=newton)
+        if stages == 1
+        else dvi.GaussVPRK(stages, root_finder=newton)
+    )
+    spring = dvi.LagrangianTerm(
+        dvi.SeparableLagrangian(lambda t, q, args: 0.5 * args * jnp.sum(q**2))
+    )
+    y0 = (jnp.array([0.3, 1.0]), jnp.zeros(2))
+    for value in (jnp.nan, jnp.inf):
+        sol = dfx.diffeqsolve(
+            spring, solver, 0.0, 1.0, 0.1, y0, args=jnp.asarray(value), throw=False
+        )
+        assert sol.result == dfx.RESULTS.nonfinite, value
+
+
 # --- LinearizedVI with steps of changing size ---------------------------------
 
 

@@ -71,7 +71,12 @@ class AbstractVIRootFinder(optx.AbstractRootFinder):
     Options: `"preconditioner"`, positive weights like the unknowns approximating the
     inverse of the Jacobian's diagonal (one over the mass), or `None`; `"carry"`,
     what the previous solve handed on ([`diffrax_vi.SimplifiedNewton`][]'s
-    factorisation)."""
+    factorisation); `"curvature"`, whether to measure `curvature` (default no).
+
+    Each iterate of these root finders is computed from the residual at the one
+    before, so a non-finite residual leaves a non-finite root: a step tells a NaN
+    force (`RESULTS.nonfinite`) from a diverged iteration by the root alone, with no
+    second evaluation of its equations."""
 
     rtol: AbstractVar[float | None]
     # optimistix's absolute tolerance and norm: unused, as every test here is on a
@@ -104,6 +109,18 @@ class AbstractVIRootFinder(optx.AbstractRootFinder):
         solve that ended in `state` (1 if it made none): the step's test of a
         singular Jacobian."""
 
+    def measures_curvature(self, y: PyTree) -> bool:
+        """Whether a solve for unknowns like `y` measures `curvature`."""
+        return False
+
+    @abc.abstractmethod
+    def curvature(self, state, root: PyTree) -> Scalar:
+        """`d . J d` for the way `d` from the guess to `root`, the root of a solve
+        that ended in `state`, with the residual's Jacobian `J` at the last iterate
+        but one, where `measures_curvature` (else NaN): the curvature a step's test
+        of a fold needs, without another derivative of the residual. `+inf` where
+        the solve's convergence certifies the root (`certifies_continuation`)."""
+
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
         return y, aux, {}
 
@@ -111,7 +128,10 @@ class AbstractVIRootFinder(optx.AbstractRootFinder):
 class NewtonState(eqx.Module):
     """`rho`: the dimensionless residual of the iterate the last update started from;
     `pivot_ratio`: the smallest over the largest pivot of the last dense
-    factorisation (1 if none); `carry`: what is handed to the next solve."""
+    factorisation (1 if none); `carry`: what is handed to the next solve; `start`:
+    the first iterate; `jacobian`: the last dense Jacobian, where the solve
+    measures the curvature along its way (`Newton.measures_curvature`; else an
+    empty array)."""
 
     rho: Scalar
     rho_prev: Scalar
@@ -119,13 +139,23 @@ class NewtonState(eqx.Module):
     step: Int[Array, ""]
     result: optx.RESULTS
     carry: PyTree
+    start: PyTree
+    jacobian: Array
 
 
-def _newton_init(y, carry) -> NewtonState:
+def _newton_init(y, carry, keeps_jacobian: bool = False) -> NewtonState:
     dtype = tree_dtype(y)
     inf = jnp.array(jnp.inf, dtype)
+    n = tree_size(y) if keeps_jacobian else 0
     return NewtonState(
-        inf, inf, jnp.ones((), dtype), jnp.array(0), optx.RESULTS.successful, carry
+        inf,
+        inf,
+        jnp.ones((), dtype),
+        jnp.array(0),
+        optx.RESULTS.successful,
+        carry,
+        y,
+        jnp.full((n, n), jnp.nan, dtype),
     )
 
 
@@ -153,6 +183,12 @@ class AbstractNewtonFamily(AbstractVIRootFinder):
 
     def pivot_ratio(self, state: NewtonState) -> Scalar:
         return state.pivot_ratio
+
+    def curvature(self, state: NewtonState, root: PyTree) -> Scalar:
+        if state.jacobian.size == 0:
+            return jnp.full((), jnp.nan, state.rho.dtype)
+        way = jax.flatten_util.ravel_pytree(tree_sub(root, state.start))[0]
+        return jnp.sum(way * product(state.jacobian, way))
 
     def terminate(self, fn, y, args, options, state, tags):
         return _newton_terminate(self.tolerance(y), state)
@@ -212,6 +248,11 @@ class Newton(AbstractNewtonFamily):
             return newton_is_dense(tree_size(y))
         return self.linear_solver == "dense"
 
+    def measures_curvature(self, y: PyTree) -> bool:
+        # The dense Jacobian is at hand (kept up to 16 unknowns); a matrix-free
+        # solve would need another Jacobian-vector product in every iteration.
+        return self.dense(y) and newton_is_dense(tree_size(y))
+
     def carry_init(self, y: PyTree) -> PyTree:
         return None
 
@@ -219,7 +260,8 @@ class Newton(AbstractNewtonFamily):
         return None
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
-        return _newton_init(y, options.get("carry"))
+        keeps_jacobian = options.get("curvature", False) and self.measures_curvature(y)
+        return _newton_init(y, options.get("carry"), keeps_jacobian)
 
     def step(self, fn, y, args, options, state, tags):
         f, lin, scale = jax.linearize(lambda _y: fn(_y, args), y, has_aux=True)
@@ -236,13 +278,15 @@ class Newton(AbstractNewtonFamily):
                 lin, jax.eval_shape(lambda: y), tags=tags
             )
             pivot_ratio = state.pivot_ratio
+            matrix = None
             if not isinstance(self.linear_solver, str):
                 sol = lx.linear_solve(operator, f, self.linear_solver, throw=False)
                 delta, result = sol.value, optx.RESULTS.promote(sol.result)
             elif self.dense(y):
                 flat_f, _ = jax.flatten_util.ravel_pytree(f)
+                matrix = operator.as_matrix()
                 flat_delta, pivot_ratio = dense_lu_solve(
-                    operator.as_matrix(), flat_f, NEWTON_DENSE_MAX
+                    matrix, flat_f, NEWTON_DENSE_MAX
                 )
                 delta = jax.flatten_util.ravel_pytree(y)[1](flat_delta)
                 result = optx.RESULTS.successful
@@ -277,22 +321,37 @@ class Newton(AbstractNewtonFamily):
                     optx.RESULTS.successful,
                     optx.RESULTS.nonlinear_divergence,
                 )
+                # From a non-finite residual a Krylov solve stops with whatever its
+                # breakdown left, which may be finite: the update is NaN, as a
+                # dense solve's is, so that the iterate shows it (see
+                # `AbstractVIRootFinder`).
+                delta = jtu.tree_map(
+                    lambda d: jnp.where(jnp.isfinite(rho), d, jnp.nan), delta
+                )
             if self.damped:
                 y_new = _backtrack(fn, y, args, delta, rho, scale)
             else:
                 y_new = tree_sub(y, delta)
-            return y_new, pivot_ratio, result
+            jacobian = state.jacobian
+            if matrix is not None and jacobian.size:
+                jacobian = matrix
+            return y_new, pivot_ratio, result, jacobian
 
         if isinstance(self.linear_solver, str) and self.dense(y) and not self.damped:
             # An unrolled LU costs less than the branch that would skip it (a
             # conditional in the loop costs a third of a RATTLE step on the
             # Cartesian pendulum): at round-off its update is at round-off too.
-            y_new, pivot_ratio, result = update()
+            y_new, pivot_ratio, result, jacobian = update()
         else:
-            y_new, pivot_ratio, result = lax.cond(
+            y_new, pivot_ratio, result, jacobian = lax.cond(
                 unvmap_any(~exact),
                 update,
-                lambda: (y, state.pivot_ratio, optx.RESULTS.successful),
+                lambda: (
+                    y,
+                    state.pivot_ratio,
+                    optx.RESULTS.successful,
+                    state.jacobian,
+                ),
             )
         new = NewtonState(
             rho,
@@ -301,6 +360,8 @@ class Newton(AbstractNewtonFamily):
             state.step + 1,
             result,
             state.carry,
+            state.start,
+            jacobian,
         )
         return y_new, new, scale
 
@@ -409,7 +470,14 @@ class SimplifiedNewton(AbstractNewtonFamily):
             jnp.all(jnp.isfinite(delta)), optx.RESULTS.successful, optx.RESULTS.singular
         )
         new = NewtonState(
-            rho, rho, pivot_ratio(lu), state.step + 1, result, (lu, piv, fresh)
+            rho,
+            rho,
+            pivot_ratio(lu),
+            state.step + 1,
+            result,
+            (lu, piv, fresh),
+            state.start,
+            state.jacobian,
         )
         return unravel(flat - delta), new, scale
 
@@ -530,6 +598,12 @@ class FixedPoint(AbstractVIRootFinder):
     def pivot_ratio(self, state: FixedPointState) -> Scalar:
         return jnp.ones((), state.size.dtype)
 
+    def measures_curvature(self, y: PyTree) -> bool:
+        return True
+
+    def curvature(self, state: FixedPointState, root: PyTree) -> Scalar:
+        return jnp.full((), jnp.inf, state.size.dtype)
+
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         if options.get("preconditioner") is None:
             raise ValueError(
@@ -590,13 +664,15 @@ class FixedPoint(AbstractVIRootFinder):
 
 class Solved(eqx.Module):
     """The outcome of [`solve`][]: the root, how the solve ended, the smallest over
-    the largest pivot of its last dense factorisation (1 if it made none), and what
-    it hands to the next solve."""
+    the largest pivot of its last dense factorisation (1 if it made none), what it
+    hands to the next solve, and the curvature along the way from the guess that the
+    root finder measured (`AbstractVIRootFinder.curvature`; NaN if it did not)."""
 
     value: PyTree
     result: dfx.RESULTS
     pivot_ratio: Scalar
     carry: PyTree
+    curvature: Scalar
 
 
 def solve(
@@ -608,14 +684,16 @@ def solve(
     preconditioner: PyTree | None = None,
     tags: frozenset = frozenset(),
     carry: PyTree = None,
+    curvature: bool = False,
 ) -> Solved:
-    """The root of `residual(w) -> (r, s)` from `guess`.
+    """The root of `residual(w) -> (r, s)` from `guess`, and with `curvature` the
+    curvature along the way where the root finder measures it.
 
     Any other `optimistix` root finder gets the residual divided by the size of its
     largest term, so that its own tolerances are relative."""
     dtype = tree_dtype(guess)
     if isinstance(root_finder, AbstractVIRootFinder):
-        find = _finder(root_finder, max_steps, tags)
+        find = _finder(root_finder, max_steps, tags, curvature)
         return _differentiated(find, residual, guess, preconditioner, carry)
 
     def relative(w, _):
@@ -629,20 +707,30 @@ def solve(
         relative, root_finder, guess, max_steps=max_steps, tags=tags, throw=False
     )
     return Solved(
-        sol.value, dfx.RESULTS.promote(sol.result), jnp.ones((), dtype), carry
+        sol.value,
+        dfx.RESULTS.promote(sol.result),
+        jnp.ones((), dtype),
+        carry,
+        jnp.full((), jnp.nan, dtype),
     )
 
 
-def _finder(root_finder: AbstractVIRootFinder, max_steps: int, tags: frozenset):
+def _finder(
+    root_finder: AbstractVIRootFinder,
+    max_steps: int,
+    tags: frozenset,
+    curvature: bool = False,
+):
     """`find(fn, guess, preconditioner, carry) -> Solved`: `optimistix.root_find`
     of `fn` (returning `(r, s)`) by `root_finder`."""
 
     def find(fn, guess, preconditioner, carry):
+        options = dict(preconditioner=preconditioner, carry=carry, curvature=curvature)
         sol = optx.root_find(
             lambda w, _: fn(w),
             root_finder,
             guess,
-            options=dict(preconditioner=preconditioner, carry=carry),
+            options=options,
             has_aux=True,
             max_steps=max_steps,
             tags=tags,
@@ -653,6 +741,7 @@ def _finder(root_finder: AbstractVIRootFinder, max_steps: int, tags: frozenset):
             dfx.RESULTS.promote(sol.result),
             root_finder.pivot_ratio(sol.state),
             root_finder.final_carry(sol.state),
+            root_finder.curvature(sol.state, sol.value),
         )
 
     return find
@@ -677,13 +766,15 @@ def solve_with_fallback(
     *,
     preconditioner: PyTree | None = None,
     tags: frozenset = frozenset(),
+    curvature: bool = False,
 ) -> Solved:
     """`solve` by the root finder `first[0]` in at most `first[1]` iterations, and
-    where it fails by `fallback` from the same guess (`tags` are the fallback's).
-    The root is differentiated once, whichever found it: a gradient's program holds
-    one implicit derivative of the step rather than one per root finder."""
-    first_find = _finder(*first, frozenset())
-    fallback_find = _finder(*fallback, tags)
+    where it fails by `fallback` from the same guess (`tags` and `curvature` as for
+    `solve`). The root is differentiated once, whichever found it: a gradient's
+    program holds one implicit derivative of the step rather than one per root
+    finder."""
+    first_find = _finder(*first, frozenset(), curvature)
+    fallback_find = _finder(*fallback, tags, curvature)
 
     def find(fn, guess, preconditioner, carry):
         solved = first_find(fn, guess, preconditioner, carry)

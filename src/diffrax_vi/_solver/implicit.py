@@ -111,14 +111,20 @@ class AbstractImplicitVI(
                 None if step.term.force is None else self.stage_work,
                 self.inverse_mass(step),
             )
+        residual = lambda w: self.stage_residual(step, w)
+        fold_residual = None
+        if self.one_stage:
+            fold_residual = (
+                residual
+                if step.term.force is None
+                else (lambda w: self.stage_residual(without_force(step), w))
+            )
         equations = StepEquations(
-            residual=lambda w: self.stage_residual(step, w),
+            residual=residual,
             increments=lambda w: self.stage_increments(step, w),
             inverse_mass=self.inverse_mass(step),
             tags=self.jacobian_tags(step),
-            fold_residual=(lambda w: self.stage_residual(without_force(step), w))
-            if self.one_stage
-            else None,
+            fold_residual=fold_residual,
             work=None
             if step.term.force is None
             else (lambda w: self.stage_work(step, w)),
