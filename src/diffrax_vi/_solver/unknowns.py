@@ -128,7 +128,9 @@ class StepEquations(eqx.Module):
       a root that continues the motion from one across a fold. A force has no
       action (strong damping in a composition's backward substep makes the full
       Jacobian indefinite at the one root of a linear step), so it is left out of
-      the test. `None` for equations with no such structure.
+      the test. `residual` itself where the step has no applied force (the root
+      finder's own Jacobian then measures the curvature: `fold_is_residual`).
+      `None` for equations with no such structure.
     - `work(w)`: the work of the step's discrete applied forces, or `None` without
       forces.
     - `constrained`: whether the unknowns are a step's and its constraint
