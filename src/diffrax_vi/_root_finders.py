@@ -114,8 +114,8 @@ class AbstractVIRootFinder(optx.AbstractRootFinder):
         return False
 
     @abc.abstractmethod
-    def curvature(self, state, root: PyTree) -> Scalar:
-        """`d . J d` for the way `d` from the guess to `root`, the root of a solve
+    def curvature(self, state, guess: PyTree, root: PyTree) -> Scalar:
+        """`d . J d` for the way `d` from `guess` to `root`, the root of a solve
         that ended in `state`, with the residual's Jacobian `J` at the last iterate
         but one, where `measures_curvature` (else NaN): the curvature a step's test
         of a fold needs, without another derivative of the residual. `+inf` where
@@ -128,10 +128,9 @@ class AbstractVIRootFinder(optx.AbstractRootFinder):
 class NewtonState(eqx.Module):
     """`rho`: the dimensionless residual of the iterate the last update started from;
     `pivot_ratio`: the smallest over the largest pivot of the last dense
-    factorisation (1 if none); `carry`: what is handed to the next solve; `start`:
-    the first iterate; `jacobian`: the last dense Jacobian, where the solve
-    measures the curvature along its way (`Newton.measures_curvature`; else an
-    empty array)."""
+    factorisation (1 if none); `carry`: what is handed to the next solve;
+    `jacobian`: the last dense Jacobian, where the solve measures the curvature
+    along its way (`Newton.measures_curvature`; else an empty array)."""
 
     rho: Scalar
     rho_prev: Scalar
@@ -139,7 +138,6 @@ class NewtonState(eqx.Module):
     step: Int[Array, ""]
     result: optx.RESULTS
     carry: PyTree
-    start: PyTree
     jacobian: Array
 
 
@@ -154,7 +152,6 @@ def _newton_init(y, carry, keeps_jacobian: bool = False) -> NewtonState:
         jnp.array(0),
         optx.RESULTS.successful,
         carry,
-        y,
         jnp.full((n, n), jnp.nan, dtype),
     )
 
@@ -184,10 +181,10 @@ class AbstractNewtonFamily(AbstractVIRootFinder):
     def pivot_ratio(self, state: NewtonState) -> Scalar:
         return state.pivot_ratio
 
-    def curvature(self, state: NewtonState, root: PyTree) -> Scalar:
+    def curvature(self, state: NewtonState, guess: PyTree, root: PyTree) -> Scalar:
         if state.jacobian.size == 0:
             return jnp.full((), jnp.nan, state.rho.dtype)
-        way = jax.flatten_util.ravel_pytree(tree_sub(root, state.start))[0]
+        way = jax.flatten_util.ravel_pytree(tree_sub(root, guess))[0]
         return jnp.sum(way * product(state.jacobian, way))
 
     def terminate(self, fn, y, args, options, state, tags):
@@ -360,7 +357,6 @@ class Newton(AbstractNewtonFamily):
             state.step + 1,
             result,
             state.carry,
-            state.start,
             jacobian,
         )
         return y_new, new, scale
@@ -476,7 +472,6 @@ class SimplifiedNewton(AbstractNewtonFamily):
             state.step + 1,
             result,
             (lu, piv, fresh),
-            state.start,
             state.jacobian,
         )
         return unravel(flat - delta), new, scale
@@ -601,7 +596,7 @@ class FixedPoint(AbstractVIRootFinder):
     def measures_curvature(self, y: PyTree) -> bool:
         return True
 
-    def curvature(self, state: FixedPointState, root: PyTree) -> Scalar:
+    def curvature(self, state: FixedPointState, guess: PyTree, root: PyTree) -> Scalar:
         return jnp.full((), jnp.inf, state.size.dtype)
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
@@ -741,7 +736,7 @@ def _finder(
             dfx.RESULTS.promote(sol.result),
             root_finder.pivot_ratio(sol.state),
             root_finder.final_carry(sol.state),
-            root_finder.curvature(sol.state, sol.value),
+            root_finder.curvature(sol.state, guess, sol.value),
         )
 
     return find
