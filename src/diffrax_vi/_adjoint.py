@@ -10,7 +10,9 @@ the forward solve: Matsubara, Miyatake & Yaguchi (2021), *Symplectic adjoint
 method*; McCallum & Foster (2024), *Efficient, accurate and stable gradients for
 neural ODEs*, for the algebraically reversible case). Memory is that of a few states
 and one time per step; the work is an inverse step, a repeated forward step and its
-vector-Jacobian product for each step.
+vector-Jacobian product for each step. The repeated forward step of an implicit
+method takes the root of the inverse step that has just undone it
+(`root_of_inverse`), so each backward step solves one step's equations, not two.
 """
 
 import functools as ft
@@ -26,6 +28,7 @@ import jax.tree_util as jtu
 from ._adaptive import ReversibleController, ReversibleState
 from ._force import depends_on_velocity
 from ._lagrangian import Lagrangian
+from ._misc import tree_size
 from ._private_api import (
     clip_to_end,
     is_subsaveat,
@@ -34,9 +37,11 @@ from ._private_api import (
     save_y,
     WrapTerm,
 )
-from ._solver.base import is_symmetric
+from ._solver.base import AbstractVariationalSolver, is_symmetric
+from ._solver.unknowns import KnownRoot
 from ._space import tangent
 from ._term import LagrangianTerm
+from ._tolerance import newton_is_dense
 
 
 REBUILD_FAILED = (
@@ -408,11 +413,17 @@ def _loop_reversible_bwd(
     # Every step is taken as after a jump: what a solver caches from its last step
     # (the force at its end, the first kick of the next step) is recomputed from
     # the state the step starts from, through which it is then differentiated.
-    def step(t_start, t_end, y, args, terms, state):
+    def step(t_start, t_end, y, args, terms, state, solver=solver):
         y_next, _, dense, state, result = solver.step(
             terms, t_start, t_end, y, args, state, True
         )
         return y_next, dense, state, result
+
+    # The inverse step's first state, and whether the forward steps take the roots
+    # the inverse steps found (`_takes_inverse_roots`).
+    last = jnp.maximum(num_steps - 1, 0)
+    back_state = solver.init(terms, times[num_steps], times[last], y_final, args)
+    takes_roots = _takes_inverse_roots(solver, terms, back_state, self.checkpoint_every)
 
     # Step k of the forward solve (from times[k - 1]) as a function of what it
     # depends on. At fixed steps that is the state `y`, the step's ends being fixed
@@ -420,7 +431,7 @@ def _loop_reversible_bwd(
     # the state and the step density `w`, and the step's end and the next density
     # are outputs of the step. The interpolant between the step's ends is an output
     # too when SaveAt(ts=...) saves from it.
-    def advance(k, ext, d_args, d_terms, d_ctrl, state):
+    def advance(k, ext, d_args, d_terms, d_ctrl, state, solver=solver):
         args = eqx.combine(d_args, nondiff_args)
         terms = eqx.combine(d_terms, nondiff_terms)
         if reversible:
@@ -431,7 +442,7 @@ def _loop_reversible_bwd(
             t_next = clip_to_end(t, t_next, t1, floor, True)
         else:
             t, y, t_next = times[k - 1], ext, times[k]
-        y_next, dense, state, result = step(t, t_next, y, args, terms, state)
+        y_next, dense, state, result = step(t, t_next, y, args, terms, state, solver)
         if reversible:
             node = ctrl.adapt_step_size(t, t_next, y, y_next, args, None, 0, node)
             node = node[4]
@@ -478,13 +489,19 @@ def _loop_reversible_bwd(
     def body(carry):
         k, ext, a_ext, a_args, a_terms, a_ctrl, back_state, fwd_state, ok = carry
         ext_prev, back_state, back_result = retreat(k, ext, back_state)
+        forward = solver
+        if takes_roots:
+            root = KnownRoot(solver.root_of_inverse(terms, back_state))
+            forward = eqx.tree_at(
+                lambda s: s.root_finder, solver, root, is_leaf=_is_none
+            )
         if anchors is not None:
             i, stored = divmod(k - 1, every)
             ext_prev = jtu.tree_map(
                 lambda a, x: jnp.where(stored == 0, a[i], x), anchors, ext_prev
             )
         (_, interp), vjp, (fwd_state, result) = jax.vjp(
-            lambda e, a, tr, c: advance(k, e, a, tr, c, fwd_state),
+            lambda e, a, tr, c: advance(k, e, a, tr, c, fwd_state, forward),
             ext_prev,
             diff_args,
             diff_terms,
@@ -532,8 +549,6 @@ def _loop_reversible_bwd(
             max_steps,
             every,
         )
-    last = jnp.maximum(num_steps - 1, 0)
-    back_state = solver.init(terms, times[num_steps], times[last], y_final, args)
     zeros = ft.partial(jtu.tree_map, jnp.zeros_like)
     carry = (
         num_steps,
@@ -559,6 +574,27 @@ def _loop_reversible_bwd(
     else:
         grads = jtu.tree_map(lambda x: jnp.where(ok, x, jnp.nan), grads)
     return grads
+
+
+def _takes_inverse_roots(solver, terms, back_state, checkpoint_every) -> bool:
+    """Whether the forward steps of the backward pass take the roots of the inverse
+    steps rather than solving their equations again.
+
+    Each forward step that the backward pass differentiates is the one that the
+    inverse step has just undone, and a symmetric implicit method knows that step's
+    root from the inverse step's (`root_of_inverse`): taken as it is
+    (`KnownRoot`) and differentiated by the implicit function theorem there, no
+    step's equations are solved twice, and a gradient's program holds one root
+    solve less (`benchmarks/reversible_roots.py`). Not with `checkpoint_every`: a
+    step from an anchor starts from the forward solve's own state, not from the
+    inverse step's, whose root it would not be; and not beyond the dense implicit
+    derivative's `NEWTON_DENSE_MAX` unknowns."""
+    if checkpoint_every is not None or not isinstance(
+        solver, AbstractVariationalSolver
+    ):
+        return False
+    root = solver.root_of_inverse(terms, back_state)
+    return root is not None and newton_is_dense(tree_size(root))
 
 
 def _anchors(advance, ext0, solver_state, n, max_steps, every):

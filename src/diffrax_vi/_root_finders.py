@@ -753,6 +753,30 @@ def _differentiated(find, residual, guess, preconditioner, carry) -> Solved:
     return _implicit_solve(find, residual, guess, preconditioner, carry)
 
 
+def known_root(
+    residual: Callable[[PyTree], tuple[PyTree, PyTree]],
+    root: PyTree,
+    *,
+    preconditioner: PyTree | None = None,
+    carry: PyTree = None,
+) -> Solved:
+    """`root`, a root of `residual` found elsewhere, as `solve` would return it,
+    differentiated by the implicit function theorem there: no iteration in the
+    program. For at most `NEWTON_DENSE_MAX` unknowns."""
+    dtype = tree_dtype(root)
+
+    def find(fn, guess, preconditioner, carry):
+        return Solved(
+            guess,
+            dfx.RESULTS.successful,
+            jnp.ones((), dtype),
+            carry,
+            jnp.full((), jnp.nan, dtype),
+        )
+
+    return _implicit_solve(find, residual, root, preconditioner, carry)
+
+
 def solve_with_fallback(
     residual: Callable[[PyTree], tuple[PyTree, PyTree]],
     guess: PyTree,

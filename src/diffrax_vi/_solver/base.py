@@ -494,6 +494,18 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
     ) -> PyTree:
         return terms.vf(t0, y0, args)
 
+    def root_of_inverse(
+        self, terms: dfx.AbstractTerm, solver_state: VIState
+    ) -> PyTree | None:
+        """The unknowns of the step that the step just taken inverts, from its
+        `solver_state`: a symmetric implicit step from $y_1$ with $-h$ solves for the
+        same velocities as the step from $y_0$ with $h$ that it undoes (their stages
+        in reverse order), so [`diffrax_vi.ReversibleAdjoint`][] takes them as that
+        step's root rather than solving for it again. `None` where the step has no
+        such root (an explicit step; constrained steps, whose multipliers differ
+        with the sign of $h$)."""
+        return None
+
 
 # A step traced once per program: diffrax traces a solver's step up to three times
 # (twice under `eval_shape` to find what stays static, then in its loop). JAX reuses

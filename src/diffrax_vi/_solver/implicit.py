@@ -21,6 +21,7 @@ from .base import (
     AbstractVariationalSolver,
     MethodStep,
     StepInputs,
+    unwrap_term,
     without_force,
 )
 from .constrained import constrained_step, init_constrained
@@ -137,6 +138,17 @@ class AbstractImplicitVI(
             root_finding(self.root_finder),
             self.root_find_max_steps,
         )
+
+    def root_of_inverse(self, terms, solver_state):
+        term, _ = unwrap_term(terms, type(self).__name__)
+        if term.constraint is not None:
+            return None
+        return self.reversed_stages(solver_state.method.last)
+
+    def reversed_stages(self, unknowns: PyTree) -> PyTree:
+        """The unknowns with their stages in reverse order: the inverse step's, for
+        a symmetric method."""
+        return unknowns
 
     @property
     def one_stage(self) -> bool:

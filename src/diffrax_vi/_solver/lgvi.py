@@ -33,7 +33,7 @@ from jaxtyping import Array, ArrayLike, Bool
 
 from .._lagrangian import AbstractRigidBodyLagrangian, mass_regular
 from .._misc import all_finite
-from .._root_finders import Newton, solve
+from .._root_finders import known_root, Newton, solve
 from .._so3 import SO3
 from .._space import left_gradient, retract, transport
 from .base import (
@@ -44,6 +44,7 @@ from .base import (
     MethodStep,
     StepInputs,
 )
+from .unknowns import KnownRoot
 
 
 # The step's own retraction: R_{k+1} = R_k cay(f) = R_k tau(2 f).
@@ -180,8 +181,12 @@ class LGVI(
         # velocity at the start.
         omega = jnp.where(made_jump, pi0 / inertia, 2 * state.last - state.before_last)
         guess = 0.5 * h * omega
-        root_finder = Newton() if self.root_finder is None else self.root_finder
-        solved = solve(residual, guess, root_finder, self.root_find_max_steps)
+        if isinstance(self.root_finder, KnownRoot):
+            # The step's velocity 2f/h, known from its inverse step's.
+            solved = known_root(residual, 0.5 * h * self.root_finder.root)
+        else:
+            root_finder = Newton() if self.root_finder is None else self.root_finder
+            solved = solve(residual, guess, root_finder, self.root_find_max_steps)
         f = solved.value
         dq = 2 * f
         q1 = retract(_CAYLEY, step.q0, dq)
@@ -196,6 +201,10 @@ class LGVI(
         v = dq / h
         new = LGVIState(torque1, v, state.last, state.regular)
         return MethodStep(dq, dp, v, new, result, space=_CAYLEY, q1=q1)
+
+    def root_of_inverse(self, terms, solver_state):
+        # The inverse step's Cayley parameter is -f, with -h: the same velocity.
+        return solver_state.method.last
 
 
 LGVI.__init__.__doc__ = """**Arguments:**

@@ -24,6 +24,7 @@ from .base import (
     after_jump,
     MethodStep,
     StepInputs,
+    unwrap_term,
     without_force,
 )
 from .constrained import constrained_step, init_constrained
@@ -191,6 +192,14 @@ class TrapezoidalVI(
             root_finding(self.root_finder),
             self.root_find_max_steps,
         )
+
+    def root_of_inverse(self, terms, solver_state):
+        # The one velocity of the general implicit step (not the explicit step, and
+        # not RATTLE's or a constrained step's multipliers).
+        term, _ = unwrap_term(terms, type(self).__name__)
+        if term.constraint is not None or not isinstance(solver_state.method, Unknowns):
+            return None
+        return solver_state.method.last
 
     def _explicit_step(
         self, step: StepInputs, state: "ExplicitState", made_jump

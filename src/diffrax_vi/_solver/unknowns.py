@@ -31,6 +31,7 @@ from .._private_api import unvmap_any
 from .._root_finders import (
     AbstractVIRootFinder,
     FixedPoint,
+    known_root,
     Newton,
     solve,
     solve_with_fallback,
@@ -277,13 +278,40 @@ class FixedPointThenNewton(AbstractStepRootFinding):
         return solved, False
 
 
+class KnownRoot(AbstractStepRootFinding):
+    """The policy of a step whose root is known: `root`, found elsewhere (by the
+    inverse step of `ReversibleAdjoint`, `root_of_inverse`), taken as it is and
+    differentiated by the implicit function theorem there. Its convergence was
+    certified where it was found."""
+
+    root: PyTree
+    own: ClassVar[bool] = True
+
+    def measures_curvature(self, equations, guess):
+        return False
+
+    def carry_init(self, guess: PyTree) -> PyTree:
+        return None
+
+    def solve(self, equations, guess, carry, max_steps):
+        solved = known_root(
+            equations.residual,
+            self.root,
+            preconditioner=equations.inverse_mass,
+            carry=carry,
+        )
+        return solved, True
+
+
 def root_finding(
-    root_finder: optx.AbstractRootFinder | None,
+    root_finder: optx.AbstractRootFinder | AbstractStepRootFinding | None,
 ) -> AbstractStepRootFinding:
     """The policy of a solver's `root_finder` argument: `None` is the default
     policy."""
     if root_finder is None:
         return FixedPointThenNewton()
+    if isinstance(root_finder, AbstractStepRootFinding):
+        return root_finder
     return GivenRootFinder(root_finder)
 
 

@@ -361,6 +361,13 @@ class AbstractVPRK(AbstractImplicitVI):
     def one_stage(self) -> bool:
         return self.tableau.stages == 1
 
+    def reversed_stages(self, unknowns: PyTree) -> PyTree:
+        # A symmetric tableau's stage i of the step with -h is stage s + 1 - i of
+        # the step with h (c_i -> 1 - c_i); one stage has no stage axis on a group.
+        if self.tableau.stages == 1:
+            return unknowns
+        return jtu.tree_map(lambda x: jnp.flip(x, 0), unknowns)
+
     def jacobian_tags(self, step: StepInputs) -> frozenset:
         # One stage: J = d2L/dv2 - (h^2/4) d2L/dq2 + (h/2) (Lqv - Lqv^T), symmetric
         # where dL/dv does not read q (Lqv = 0: a separable Lagrangian, or any whose
