@@ -5,9 +5,9 @@ differentiates the forward step from it. A symmetric implicit method knows that
 forward step's root from the inverse step's (`root_of_inverse`: the same
 velocities, a Gauss method's stages in reverse order, `LGVI`'s velocity 2f/h), and
 the adjoint takes it, differentiated by the implicit function theorem there,
-instead of solving the step's equations again. The reference solves them again, as the adjoint did before
-(and still does with `checkpoint_every`): it is run here by patching the choice
-(`_adjoint._takes_inverse_roots`) to "no".
+instead of solving the step's equations again. The reference solves them again, as
+the adjoint did before (and still does with `checkpoint_every`): it is run here by
+patching the choice (`_adjoint._takes_inverse_roots`) to "no".
 
 For each case: `jax.grad` of the sum of the final state over 400 steps of
 `diffeqsolve`, compiled once per variant in this process (caches cleared between);
