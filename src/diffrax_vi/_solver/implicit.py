@@ -21,12 +21,12 @@ from .base import (
     AbstractVariationalSolver,
     MethodStep,
     StepInputs,
-    unwrap_term,
     without_force,
 )
 from .constrained import constrained_step, init_constrained
 from .unknowns import (
     init_unknowns,
+    last_unknowns,
     root_finding,
     solve_step,
     StepEquations,
@@ -140,10 +140,8 @@ class AbstractImplicitVI(
         )
 
     def root_of_inverse(self, terms, solver_state):
-        term, _ = unwrap_term(terms, type(self).__name__)
-        if term.constraint is not None:
-            return None
-        return self.reversed_stages(solver_state.method.last)
+        last = last_unknowns(terms, solver_state, type(self).__name__)
+        return None if last is None else self.reversed_stages(last)
 
     def reversed_stages(self, unknowns: PyTree) -> PyTree:
         """The unknowns with their stages in reverse order: the inverse step's, for

@@ -24,7 +24,6 @@ from .base import (
     after_jump,
     MethodStep,
     StepInputs,
-    unwrap_term,
     without_force,
 )
 from .constrained import constrained_step, init_constrained
@@ -34,6 +33,7 @@ from .rule import rule_increments, rule_residual, rule_work
 from .stormer_verlet import kick_drift_kick, poisoned_force
 from .unknowns import (
     init_unknowns,
+    last_unknowns,
     root_finding,
     solve_step,
     StepEquations,
@@ -196,10 +196,7 @@ class TrapezoidalVI(
     def root_of_inverse(self, terms, solver_state):
         # The one velocity of the general implicit step (not the explicit step, and
         # not RATTLE's or a constrained step's multipliers).
-        term, _ = unwrap_term(terms, type(self).__name__)
-        if term.constraint is not None or not isinstance(solver_state.method, Unknowns):
-            return None
-        return solver_state.method.last
+        return last_unknowns(terms, solver_state, type(self).__name__)
 
     def _explicit_step(
         self, step: StepInputs, state: "ExplicitState", made_jump

@@ -43,7 +43,7 @@ from .._tolerance import (
     FIXED_POINT_STEPS_FACTOR,
     singular_threshold,
 )
-from .base import MethodStep, StepInputs
+from .base import MethodStep, StepInputs, unwrap_term
 
 
 class Start(eqx.Module):
@@ -202,9 +202,7 @@ class GivenRootFinder(AbstractStepRootFinding):
         return self.own and self.root_finder.measures_curvature(guess)
 
     def carry_init(self, guess: PyTree) -> PyTree:
-        if isinstance(self.root_finder, AbstractVIRootFinder):
-            return self.root_finder.carry_init(guess)
-        return None
+        return self.root_finder.carry_init(guess) if self.own else None
 
     def solve(self, equations, guess, carry, max_steps):
         solved = solve(
@@ -217,10 +215,7 @@ class GivenRootFinder(AbstractStepRootFinding):
             carry=carry,
             curvature=equations.fold_is_residual,
         )
-        certified = isinstance(self.root_finder, AbstractVIRootFinder) and (
-            self.root_finder.certifies_continuation
-        )
-        return solved, certified
+        return solved, self.own and self.root_finder.certifies_continuation
 
 
 class FixedPointThenNewton(AbstractStepRootFinding):
@@ -301,6 +296,17 @@ class KnownRoot(AbstractStepRootFinding):
             carry=carry,
         )
         return solved, True
+
+
+def last_unknowns(terms: dfx.AbstractTerm, solver_state, solver: str) -> PyTree | None:
+    """The unknowns of the last step of an unconstrained implicit step, from the
+    solver state (`VIState`) that holds its `Unknowns`, or `None` (a constrained
+    step's multipliers, an explicit step's state): what `root_of_inverse` starts
+    from."""
+    term, _ = unwrap_term(terms, solver)
+    if term.constraint is not None or not isinstance(solver_state.method, Unknowns):
+        return None
+    return solver_state.method.last
 
 
 def root_finding(
