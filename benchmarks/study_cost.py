@@ -4,10 +4,11 @@
 - a plain `diffeqsolve` saving only `t1` (what a user's solve costs, as in
   `step_cost.py`);
 - the study's own two solves, compiled by `diffrax_vi.study`'s `prepare` as the drift
-  study compiles them: the `plain` one, whose wall time the study reports (fixed
-  steps in `solve_fixed_steps`'s scan, which skips `diffeqsolve`'s general loop),
-  and the `tracked` one, which takes every invariant's error after every step and
-  keeps the largest per save interval (one per orbit) in the solver state;
+  study compiles them: the `plain` one, whose wall time the study reports (a
+  `diffeqsolve`, as a user's), and the `tracked` one, which takes every invariant's
+  error after every step and keeps the largest per save interval (one per orbit) in
+  the solver state (fixed steps in `solve_fixed_steps`'s scan, which skips
+  `diffeqsolve`'s general loop);
 - the same maxima taken instead from every step's errors saved through
   `SaveAt(steps=True, fn=...)` (one `diffeqsolve`, a buffer write per step).
 

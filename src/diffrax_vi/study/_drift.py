@@ -30,7 +30,8 @@ class DriftRun:
 
     - `solver`: the method's name.
     - `steps`: the number of steps taken (the most taken by any ensemble member).
-    - `wall_time`: seconds for the solve (of the whole ensemble), after compilation.
+    - `wall_time`: seconds for a plain `diffeqsolve` of the method saving only
+        `t1` (vmapped over the whole ensemble), after compilation.
     - `result`: `"successful"`, diffrax's message for the failure, or how many
         ensemble members failed.
     - `ts`: the start and the ends of the `n_save` intervals.
