@@ -3,7 +3,8 @@
 Each backward step rebuilds the state before a step by the inverse step, then
 differentiates the forward step from it. A symmetric implicit method knows that
 forward step's root from the inverse step's (`root_of_inverse`: the same
-velocities, a Gauss method's stages in reverse order, `LGVI`'s velocity 2f/h), and
+velocities, a Gauss method's stages in reverse order, `LGVI`'s velocity 2f/h, a
+constrained step's multipliers from the inverse step's momentum projection), and
 the adjoint takes it, differentiated by the implicit function theorem there,
 instead of solving the step's equations again. The reference solves them again, as
 the adjoint did before (and still does with `checkpoint_every`): it is run here by
@@ -45,6 +46,7 @@ CASES = [
     ("double_pendulum", "GaussVPRK2"),
     ("free_rigid_body", "MidpointVI"),
     ("heavy_top", "LGVI"),
+    ("four_bar", "MidpointVI"),
 ]
 STEPS = 400
 

@@ -435,12 +435,29 @@ def test_the_backward_pass_solves_each_step_once():
     assert root_solves(dvi.ReversibleAdjoint()) == 4
     assert root_solves(dvi.ReversibleAdjoint(checkpoint_every=4)) == 6
 
+    # A constrained step too: its multipliers are the inverse step's projection's.
+    rod = dvi.scenes.cartesian_pendulum()
+
+    def rod_solves(adjoint):
+        def loss(y0):
+            sol = dfx.diffeqsolve(
+                rod.term(), dvi.MidpointVI(), 0.0, 1.0, 0.05, y0, adjoint=adjoint
+            )
+            return jnp.sum(sol.ys[0])
+
+        return str(jax.make_jaxpr(jax.grad(loss))(rod.y0)).count("name=root_find")
+
+    assert rod_solves(dvi.ReversibleAdjoint()) == 4
+    assert rod_solves(dvi.ReversibleAdjoint(checkpoint_every=4)) == 6
+
 
 def _final_gradient(scene, solver, adjoint, forced):
     """d/dy0 of a scalar of the scene's final state after 60 steps, with a force of
     time and position where `forced`."""
     force = (lambda t, q, v, args: 0.3 * jnp.cos(t) + 0.1 * q**2) if forced else None
-    term = dvi.LagrangianTerm(scene.lagrangian, force=force)
+    term = dvi.LagrangianTerm(
+        scene.lagrangian, force=force, constraint=scene.constraint
+    )
 
     def loss(y0):
         sol = dfx.diffeqsolve(
@@ -457,8 +474,18 @@ def _final_gradient(scene, solver, adjoint, forced):
         ("double_pendulum", dvi.GaussVPRK(2), False),
         ("double_pendulum", dvi.TrapezoidalVI(), True),
         ("heavy_top", dvi.LGVI(), False),
+        ("four_bar", dvi.MidpointVI(), False),
+        ("cartesian_pendulum", dvi.MidpointVI(), True),
+        ("cartesian_pendulum", dvi.TrapezoidalVI(), False),
     ],
-    ids=["GaussVPRK(2)", "TrapezoidalVI-forced", "LGVI"],
+    ids=[
+        "GaussVPRK(2)",
+        "TrapezoidalVI-forced",
+        "LGVI",
+        "four-bar",
+        "rod-forced",
+        "RATTLE",
+    ],
 )
 def test_the_inverse_steps_root_gives_the_checkpointed_gradient(scene, solver, forced):
     """The root a forward step takes from its inverse step: the same velocities,
@@ -466,7 +493,10 @@ def test_the_inverse_steps_root_gives_the_checkpointed_gradient(scene, solver, f
     order, the gradient is wrong in the third digit); for the trapezoidal step of a
     general Lagrangian, with a force of time and position, its one velocity; for
     LGVI, whose inverse step's Cayley parameter is -f with -h, the same velocity
-    2f/h. The gradients equal checkpointing's to 1e-12 relative."""
+    2f/h. A constrained step's multipliers are those of the inverse step's
+    momentum projection (the four-bar's loop closure; the Cartesian pendulum's
+    rod, forced, and under RATTLE, whose unknowns are the multipliers alone). The
+    gradients equal checkpointing's to 1e-12 relative."""
     scene = dvi.scenes.SCENES[scene]()
     ours = _final_gradient(scene, solver, dvi.ReversibleAdjoint(), forced)
     reference = _final_gradient(scene, solver, dfx.RecursiveCheckpointAdjoint(), forced)

@@ -177,10 +177,12 @@ def rank_ok(jacobian: Array) -> Array:
 
 class Projected(eqx.Module):
     """A momentum projected onto the hidden constraint, the constraint impulse
-    $-G^\\top\\mu$ that moved it there, and whether the projection succeeded."""
+    $-G^\\top\\mu$ that moved it there, its multiplier $\\mu$, and whether the
+    projection succeeded."""
 
     p: P
     impulse: P
+    multiplier: Array
     result: dfx.RESULTS
 
 
@@ -243,7 +245,7 @@ def project_momentum(
         solved = solve(residual, (zeros, mu0), Newton(), 32)
         mu = solved.value[1]
     kick = impulse(mu)
-    return Projected(jtu.tree_map(lambda a, b: a + b, p, kick), kick, solved.result)
+    return Projected(jtu.tree_map(lambda a, b: a + b, p, kick), kick, mu, solved.result)
 
 
 def project_separable(lagrangian, jacobian: Array, rate: Array, p: P) -> Projected:
@@ -261,7 +263,7 @@ def project_separable(lagrangian, jacobian: Array, rate: Array, p: P) -> Project
     regular = ~(ratio <= singular_threshold(jacobian.shape[0], jacobian.dtype))
     result = dfx.RESULTS.where(regular, dfx.RESULTS.successful, dfx.RESULTS.singular)
     impulse = -jacobian.T @ mu
-    return Projected(unravel(flat_p + impulse), unravel(impulse), result)
+    return Projected(unravel(flat_p + impulse), unravel(impulse), mu, result)
 
 
 def project_onto_constraints(

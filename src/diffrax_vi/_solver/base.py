@@ -501,9 +501,10 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         `solver_state`: a symmetric implicit step from $y_1$ with $-h$ solves for the
         same velocities as the step from $y_0$ with $h$ that it undoes (their stages
         in reverse order), so [`diffrax_vi.ReversibleAdjoint`][] takes them as that
-        step's root rather than solving for it again. `None` where the step has no
-        such root (an explicit step; constrained steps, whose multipliers differ
-        with the sign of $h$)."""
+        step's root rather than solving for it again; a constrained step's
+        multipliers are those of the inverse step's momentum projection
+        (`unknowns.inverse_root`). `None` where the step has no such root (an
+        explicit step, RATTLE's multipliers alone)."""
         return None
 
 

@@ -65,7 +65,8 @@ def init_constrained(
         step.term, step.t0, step.q0, step.p0, start.v0, step.args, guess
     )
     carry = root_finding.carry_init(guess)
-    return Unknowns(guess, guess, carry, start.positive, start.result)
+    projection = jnp.zeros((m,), step.dtype)
+    return Unknowns(guess, guess, carry, start.positive, start.result, projection)
 
 
 def constrained_step(
@@ -135,6 +136,9 @@ def constrained_step(
     result = dfx.RESULTS.where(
         out.result == dfx.RESULTS.successful, projected.result, out.result
     )
+    # The inverse step's projection gives this step's multipliers
+    # (`unknowns.inverse_root`).
+    state = eqx.tree_at(lambda s: s.projection, out.state, projected.multiplier)
     return MethodStep(
-        out.dq, tree_add(out.dp, projected.impulse), out.v, out.state, result, out.work
+        out.dq, tree_add(out.dp, projected.impulse), out.v, state, result, out.work
     )

@@ -26,7 +26,7 @@ from .base import (
 from .constrained import constrained_step, init_constrained
 from .unknowns import (
     init_unknowns,
-    last_unknowns,
+    inverse_root,
     root_finding,
     solve_step,
     StepEquations,
@@ -140,8 +140,9 @@ class AbstractImplicitVI(
         )
 
     def root_of_inverse(self, terms, solver_state):
-        last = last_unknowns(terms, solver_state, type(self).__name__)
-        return None if last is None else self.reversed_stages(last)
+        return inverse_root(
+            terms, solver_state, type(self).__name__, self.reversed_stages
+        )
 
     def reversed_stages(self, unknowns: PyTree) -> PyTree:
         """The unknowns with their stages in reverse order: the inverse step's, for

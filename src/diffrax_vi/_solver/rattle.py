@@ -41,22 +41,26 @@ from .._constraint import (
     project_separable,
 )
 from .._lagrangian import broadcast_mass, mass_regular
-from .._root_finders import solve
+from .._root_finders import known_root, solve
 from .base import after_jump, MethodStep, StepInputs
 from .stormer_verlet import poisoned_force
+from .unknowns import KnownRoot
 
 
 class RattleState(eqx.Module):
     """What a step hands to the next: the force and the constraint Jacobian at the
     end of the last step (the next one starts there), whether the mass is invertible
-    (checked once, at the start), and the position multipliers of the last two steps
-    (the next step's guess extrapolates them)."""
+    (checked once, at the start), the position multipliers of the last two steps
+    (the next step's guess extrapolates them), and the multipliers of the last
+    momentum projection (the step it inverts takes them as its position
+    multipliers, `unknowns.inverse_root`)."""
 
     force: PyTree
     jacobian: Array
     regular: Bool[Array, ""]
     multipliers: Array
     previous: Array
+    projection: Array
 
 
 def rattle_init(step: StepInputs, force) -> RattleState:
@@ -82,6 +86,7 @@ def rattle_init(step: StepInputs, force) -> RattleState:
         mass_regular(mass, step.p0),
         multipliers,
         multipliers,
+        jnp.zeros_like(multipliers),
     )
 
 
@@ -91,12 +96,13 @@ def rattle_step(
     made_jump,
     force: Callable[[Array, PyTree], PyTree],
     work: Callable[[PyTree], Array] | None,
-    root_finder: optx.AbstractRootFinder,
+    root_finder: optx.AbstractRootFinder | KnownRoot,
     max_steps: int,
 ) -> MethodStep:
     """One RATTLE step; `force(t, q)` is $F$, `work(v)` the work of the applied
     force's discrete forces at the step's velocity (`None` without one: the
-    constraint forces do no work on the constrained motion)."""
+    constraint forces do no work on the constrained motion). A `KnownRoot` gives
+    the multipliers (the inverse step's, `ReversibleAdjoint`)."""
     term, t0, t1, h, q0, p0, args = (
         step.term,
         step.t0,
@@ -140,7 +146,10 @@ def rattle_step(
     guess = after_jump(
         made_jump, lambda: state.multipliers, 2 * state.multipliers - state.previous
     )
-    solved = solve(residual, guess, root_finder, max_steps)
+    if isinstance(root_finder, KnownRoot):
+        solved = known_root(residual, root_finder.root)
+    else:
+        solved = solve(residual, guess, root_finder, max_steps)
     lam = solved.value
     dq = increment(lam)
     q1 = step.end_position(dq)
@@ -156,5 +165,7 @@ def rattle_step(
     )
     result = dfx.RESULTS.where(state.regular, result, dfx.RESULTS.singular)
     v = jtu.tree_map(lambda x: x / h, dq)
-    new = RattleState(force1, jacobian1, state.regular, lam, state.multipliers)
+    new = RattleState(
+        force1, jacobian1, state.regular, lam, state.multipliers, projected.multiplier
+    )
     return MethodStep(dq, dp, v, new, result, None if work is None else work(v))

@@ -28,12 +28,12 @@ from .base import (
 )
 from .constrained import constrained_step, init_constrained
 from .implicit import IMPLICIT_ARGS_DOC
-from .rattle import rattle_init, rattle_step
+from .rattle import rattle_init, rattle_step, RattleState
 from .rule import rule_increments, rule_residual, rule_work
 from .stormer_verlet import kick_drift_kick, poisoned_force
 from .unknowns import (
     init_unknowns,
-    last_unknowns,
+    inverse_root,
     root_finding,
     solve_step,
     StepEquations,
@@ -194,9 +194,13 @@ class TrapezoidalVI(
         )
 
     def root_of_inverse(self, terms, solver_state):
-        # The one velocity of the general implicit step (not the explicit step, and
-        # not RATTLE's or a constrained step's multipliers).
-        return last_unknowns(terms, solver_state, type(self).__name__)
+        if isinstance(solver_state.method, RattleState):
+            # RATTLE's multipliers: the inverse step's projection's, as for any
+            # constrained step (`unknowns.inverse_root`).
+            return solver_state.method.projection
+        # The velocity of the general implicit step, with a constrained step's
+        # multipliers (None for the explicit step).
+        return inverse_root(terms, solver_state, type(self).__name__)
 
     def _explicit_step(
         self, step: StepInputs, state: "ExplicitState", made_jump

@@ -105,13 +105,16 @@ class Unknowns(eqx.Module):
     guess is their second-order extrapolation `2 last - before_last`. Also what the
     root finder hands from one step to the next (a factorisation), and whether the
     Newton matrix must stay positive definite (`Start.positive`), and why the start
-    failed where it did (`Start.result`: the state is then NaN)."""
+    failed where it did (`Start.result`: the state is then NaN). A constrained step
+    also keeps the multiplier `projection` of its last momentum projection (see
+    `inverse_root`); `None` without constraints."""
 
     last: PyTree
     before_last: PyTree
     carry: PyTree
     positive: Bool[Array, ""]
     start: dfx.RESULTS
+    projection: Array | None = None
 
 
 class StepEquations(eqx.Module):
@@ -298,15 +301,33 @@ class KnownRoot(AbstractStepRootFinding):
         return solved, True
 
 
-def last_unknowns(terms: dfx.AbstractTerm, solver_state, solver: str) -> PyTree | None:
-    """The unknowns of the last step of an unconstrained implicit step, from the
-    solver state (`VIState`) that holds its `Unknowns`, or `None` (a constrained
-    step's multipliers, an explicit step's state): what `root_of_inverse` starts
-    from."""
-    term, _ = unwrap_term(terms, solver)
-    if term.constraint is not None or not isinstance(solver_state.method, Unknowns):
+def inverse_root(
+    terms: dfx.AbstractTerm,
+    solver_state,
+    solver: str,
+    reverse: Callable[[PyTree], PyTree] = lambda w: w,
+) -> PyTree | None:
+    r"""The root of the step that an inverse step has just undone, from the solver
+    state (`VIState`) after that inverse step, for a symmetric method whose step's
+    unknowns are `reverse` of its inverse step's; `None` where the state holds no
+    `Unknowns` (an explicit step, RATTLE's multipliers alone).
+
+    A constrained step (`constrained.py`) shifts $p_0$ by the impulse
+    $G(q_0)^\top\lambda$, takes the unconstrained step, and projects the end
+    momentum by $-G(q_1)^\top\mu$. The inverse step from $(q_1, p_1)$ undoes the
+    projection with its own $\lambda' = \mu$, after which the unconstrained step
+    back is exact and lands on the constraint, and its projection at $q_0$ then
+    takes $\mu' = \lambda$ (for a start on the hidden constraint, as every state
+    after a step is). So the step's multipliers are the inverse step's
+    `projection`, and its unknowns those of the unconstrained step."""
+    state = solver_state.method
+    if not isinstance(state, Unknowns):
         return None
-    return solver_state.method.last
+    term, _ = unwrap_term(terms, solver)
+    if term.constraint is None:
+        return reverse(state.last)
+    w, _ = state.last
+    return reverse(w), state.projection
 
 
 def root_finding(
@@ -393,7 +414,14 @@ def solve_step(
     dq, dp = equations.increments(unknowns)
     result = start_result(step, all_finite(state.last), result, state.start)
     v = jtu.tree_map(lambda x: x / step.h, dq)
-    new = Unknowns(unknowns, state.last, solved.carry, state.positive, state.start)
+    new = Unknowns(
+        unknowns,
+        state.last,
+        solved.carry,
+        state.positive,
+        state.start,
+        state.projection,
+    )
     work = None if equations.work is None else equations.work(unknowns)
     return MethodStep(dq, dp, v, new, result, work)
 
