@@ -62,6 +62,44 @@ def compiled(fn, y0):
     return program, time.perf_counter() - start
 
 
+def solve_to_period(scene, solver, adjoint=dfx.RecursiveCheckpointAdjoint()):
+    """`final(y0)`, the state after `STEPS` steps of `solver` over the scene's
+    period (saving only `t1`), and `loss(y0)`, the sum of that state under
+    `adjoint`."""
+    term = scene.term()
+
+    def final(y0, adjoint=dfx.RecursiveCheckpointAdjoint()):
+        return dfx.diffeqsolve(
+            term,
+            solver,
+            0.0,
+            scene.period,
+            scene.period / STEPS,
+            y0,
+            args=scene.args,
+            saveat=dfx.SaveAt(t1=True),
+            adjoint=adjoint,
+            max_steps=STEPS,
+        ).ys
+
+    return final, lambda y0: sum(
+        jnp.sum(x) for x in jax.tree.leaves(final(y0, adjoint))
+    )
+
+
+def compare(programs, final, y0):
+    """The largest relative difference between the gradients of the two compiled
+    `programs`, and their run times and the forward solve's (best of 5, in
+    turns)."""
+    forward, _ = compiled(final, y0)
+    first, second = (program(y0) for program in programs)
+    difference = max(
+        float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)))
+        for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(second))
+    )
+    return difference, best_times([*programs, forward], y0, repeats=5)
+
+
 def main() -> None:
     print(f"jax {jax.__version__}, diffrax {dfx.__version__}, {jax.devices()[0]}")
     print(
@@ -70,22 +108,7 @@ def main() -> None:
     )
     for scene_name, solver_name in CASES:
         scene = dvi.scenes.SCENES[scene_name]()
-        solver, term = make_solver(solver_name), scene.term()
-
-        def final(y0):
-            return dfx.diffeqsolve(
-                term,
-                solver,
-                0.0,
-                scene.period,
-                scene.period / STEPS,
-                y0,
-                args=scene.args,
-                saveat=dfx.SaveAt(t1=True),
-                max_steps=STEPS,
-            ).ys
-
-        loss = lambda y0: sum(jnp.sum(x) for x in jax.tree.leaves(final(y0)))
+        final, loss = solve_to_period(scene, make_solver(solver_name))
         programs, rows = [], []
         for implicit in (OURS, reference):
             _root_finders._implicit_solve = implicit
@@ -96,13 +119,7 @@ def main() -> None:
             breakers = dvi.diagnostics.loop_breakers(program.as_text())
             rows.append((len(breakers), seconds))
         _root_finders._implicit_solve = OURS
-        forward, _ = compiled(final, scene.y0)
-        ours, theirs = (program(scene.y0) for program in programs)
-        difference = max(
-            float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)))
-            for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs))
-        )
-        t_ours, t_ref, t_forward = best_times([*programs, forward], scene.y0, repeats=5)
+        difference, (t_ours, t_ref, t_forward) = compare(programs, final, scene.y0)
         print(
             f"  {scene_name:16s} {solver_name:14s} breakers {rows[0][0]:2d} vs "
             f"{rows[1][0]:2d}  compile {rows[0][1]:5.1f} vs {rows[1][1]:5.1f} s  "

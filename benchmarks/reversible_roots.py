@@ -22,12 +22,10 @@ Run: `taskset -c 1 python benchmarks/reversible_roots.py` (recorded:
 
 import pathlib
 import sys
-import time
 
 import diffrax as dfx
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 
 
 jax.config.update("jax_enable_x64", True)
@@ -37,7 +35,7 @@ from diffrax_vi.study import make_solver  # noqa: E402
 
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
-from step_cost import best_times  # noqa: E402
+from gradient_loops import compare, compiled, solve_to_period, STEPS  # noqa: E402
 
 
 CASES = [
@@ -48,8 +46,6 @@ CASES = [
     ("heavy_top", "LGVI"),
     ("four_bar", "MidpointVI"),
 ]
-STEPS = 400
-
 TAKEN = _adjoint._takes_inverse_roots
 
 
@@ -66,26 +62,9 @@ def main() -> None:
     )
     for scene_name, solver_name in CASES:
         scene = dvi.scenes.SCENES[scene_name]()
-        solver, term = make_solver(solver_name), scene.term()
-
-        def final(y0, adjoint=dfx.RecursiveCheckpointAdjoint()):
-            return dfx.diffeqsolve(
-                term,
-                solver,
-                0.0,
-                scene.period,
-                scene.period / STEPS,
-                y0,
-                args=scene.args,
-                saveat=dfx.SaveAt(t1=True),
-                adjoint=adjoint,
-                max_steps=STEPS,
-            ).ys
-
-        def loss(y0):
-            ys = final(y0, dvi.ReversibleAdjoint())
-            return sum(jnp.sum(x) for x in jax.tree.leaves(ys))
-
+        final, loss = solve_to_period(
+            scene, make_solver(solver_name), dvi.ReversibleAdjoint()
+        )
         programs, rows = [], []
         for choice in (TAKEN, solved_again):
             _adjoint._takes_inverse_roots = choice
@@ -93,20 +72,11 @@ def main() -> None:
             eqx.clear_caches()
             gradient = jax.grad(loss)
             solves = str(jax.make_jaxpr(gradient)(scene.y0)).count("name=root_find")
-            start = time.perf_counter()
-            program = jax.jit(gradient).lower(scene.y0).compile()
-            rows.append((solves, time.perf_counter() - start))
+            program, seconds = compiled(gradient, scene.y0)
+            rows.append((solves, seconds))
             programs.append(program)
         _adjoint._takes_inverse_roots = TAKEN
-        forward = jax.jit(final).lower(scene.y0).compile()
-        taken, again = (program(scene.y0) for program in programs)
-        difference = max(
-            float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(b)))
-            for a, b in zip(jax.tree.leaves(taken), jax.tree.leaves(again))
-        )
-        t_taken, t_again, t_forward = best_times(
-            [*programs, forward], scene.y0, repeats=5
-        )
+        difference, (t_taken, t_again, t_forward) = compare(programs, final, scene.y0)
         print(
             f"  {scene_name:16s} {solver_name:14s} root solves {rows[0][0]} vs "
             f"{rows[1][0]}  compile {rows[0][1]:5.2f} vs {rows[1][1]:5.2f} s  "
