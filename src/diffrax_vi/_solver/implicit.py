@@ -140,9 +140,7 @@ class AbstractImplicitVI(
         )
 
     def root_of_inverse(self, terms, solver_state):
-        return inverse_root(
-            terms, solver_state, type(self).__name__, self.reversed_stages
-        )
+        return inverse_root(solver_state, self.reversed_stages)
 
     def reversed_stages(self, unknowns: PyTree) -> PyTree:
         """The unknowns with their stages in reverse order: the inverse step's, for

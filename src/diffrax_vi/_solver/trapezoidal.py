@@ -200,7 +200,7 @@ class TrapezoidalVI(
             return solver_state.method.projection
         # The velocity of the general implicit step, with a constrained step's
         # multipliers (None for the explicit step).
-        return inverse_root(terms, solver_state, type(self).__name__)
+        return inverse_root(solver_state)
 
     def _explicit_step(
         self, step: StepInputs, state: "ExplicitState", made_jump

@@ -43,7 +43,7 @@ from .._tolerance import (
     FIXED_POINT_STEPS_FACTOR,
     singular_threshold,
 )
-from .base import MethodStep, StepInputs, unwrap_term
+from .base import MethodStep, StepInputs
 
 
 class Start(eqx.Module):
@@ -302,10 +302,7 @@ class KnownRoot(AbstractStepRootFinding):
 
 
 def inverse_root(
-    terms: dfx.AbstractTerm,
-    solver_state,
-    solver: str,
-    reverse: Callable[[PyTree], PyTree] = lambda w: w,
+    solver_state, reverse: Callable[[PyTree], PyTree] = lambda w: w
 ) -> PyTree | None:
     r"""The root of the step that an inverse step has just undone, from the solver
     state (`VIState`) after that inverse step, for a symmetric method whose step's
@@ -323,8 +320,7 @@ def inverse_root(
     state = solver_state.method
     if not isinstance(state, Unknowns):
         return None
-    term, _ = unwrap_term(terms, solver)
-    if term.constraint is None:
+    if state.projection is None:  # Unconstrained.
         return reverse(state.last)
     w, _ = state.last
     return reverse(w), state.projection
