@@ -10,7 +10,11 @@ Every time is the wall time of a fresh process, as a user starts it:
 - the main job with `--no-cache`, then on an empty cache (cold), then again on that
   cache (warm): the cache keeps what XLA compiled, and the warm run skips those
   compilations (not the tracing, and not programs that hold a host callback, which
-  JAX does not store).
+  JAX does not store);
+- a second warm run, which also records when the study's solves were traced and
+  compiled (`prepare`, from the first start to the last end, on both cores): the
+  rest of the run (start-up, imports, the runs, the tables and figures) is the
+  floor that no cache of compiled programs could take a warm run below.
 
 Run: `python benchmarks/startup.py` (recorded: `results/startup_cpu.txt`).
 """
@@ -26,7 +30,32 @@ import time
 BIN = pathlib.Path(sys.executable).parent
 
 
-def seconds(command: list[str], env: dict | None = None, cwd=None) -> float:
+# The main job, recording the span of the study's tracing and compilation.
+PHASES = """
+import sys, time
+from diffrax_vi.cli import main
+from diffrax_vi.study import _run
+
+spans = []
+prepare = _run.prepare
+
+
+def timed(*args, **kwargs):
+    start = time.perf_counter()
+    out = prepare(*args, **kwargs)
+    spans.append((start, time.perf_counter()))
+    return out
+
+
+_run.prepare = timed
+main(sys.argv[1:])
+print(max(e for _, e in spans) - min(s for s, _ in spans))
+"""
+
+
+def seconds(command: list[str], env: dict | None = None, cwd=None, out=None) -> float:
+    """A fresh process's wall time; the last line of its output, a number, is
+    appended to `out` if given."""
     start = time.perf_counter()
     done = subprocess.run(
         command,
@@ -40,6 +69,8 @@ def seconds(command: list[str], env: dict | None = None, cwd=None) -> float:
         assert done.returncode == 2, done.stderr
     else:
         assert done.returncode == 0, done.stderr[-2000:]
+    if out is not None:
+        out.append(float(done.stdout.strip().splitlines()[-1]))
     return elapsed
 
 
@@ -54,6 +85,14 @@ def main() -> None:
         uncached = seconds([*job, "no-cache", "--no-cache"], cache, work)
         cold = seconds([*job, "cold"], cache, work)
         warm = seconds([*job, "warm"], cache, work)
+        prepared = []
+        warm_again = seconds(
+            [sys.executable, "-c", PHASES, "drift", "--out", "phases"],
+            cache,
+            work,
+            prepared,
+        )
+        floor = warm_again - prepared[0]
     print("Start-up and the main job (`diffrax-vi drift`), fresh processes, seconds")
     print(f"import diffrax                      {import_diffrax:7.2f}")
     print(
@@ -69,6 +108,14 @@ def main() -> None:
     print(
         f"main job, warm cache                {warm:7.2f}"
         f"   {warm / cold:.2f}x the cold run"
+    )
+    print(
+        f"  of a warm run ({warm_again:.2f} s), tracing and compiling   "
+        f"{prepared[0]:7.2f}"
+    )
+    print(
+        f"  the rest (start-up, runs, output)  {floor:7.2f}"
+        f"   {floor / cold:.2f}x the cold run: a warm run's floor"
     )
     print(
         "targets: --help and a refused option <= 0.5x import diffrax; the main "

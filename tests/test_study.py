@@ -11,6 +11,7 @@ import textwrap
 import diffrax as dfx
 import diffrax_vi as dvi
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import jax.random as jr
 import matplotlib.image
@@ -162,12 +163,13 @@ def test_wall_time_is_of_the_method_alone(monkeypatch):
     # the scan.
     from diffrax_vi.study import _run
 
-    calls = []
+    calls, times = [], {}
     original = dfx.diffeqsolve
     original_fixed = _run.solve_fixed_steps
 
     def spy(terms, solver, t0, t1, dt0, y0, **kwargs):
         calls.append((solver, dt0, kwargs["saveat"], kwargs["stepsize_controller"]))
+        times[type(solver)] = (t0, t1, dt0)
         return original(terms, solver, t0, t1, dt0, y0, **kwargs)
 
     def spy_fixed(terms, solver, t0, t1, dt0, y0, args, **kwargs):
@@ -187,6 +189,19 @@ def test_wall_time_is_of_the_method_alone(monkeypatch):
     assert verlet_dt0 == pytest.approx(kepler().period / 200)
     assert verlet_control == dfx.ConstantStepSize()
     assert dt0 is None and control == dfx.PIDController(rtol=1e-8, atol=1e-8)
+    # Fixed steps' times are Python floats, as a user writes them: diffrax then
+    # checks their order when traced, and a Runge-Kutta solve holds no host callback
+    # (which JAX's persistent cache would not store); from arrays it holds one.
+    verlet_times = times[dvi.StormerVerlet]
+    assert all(type(t) is float for t in verlet_times)
+    term = kepler().term()
+
+    def lowered(*times):
+        solve = lambda y0: original(term, dfx.Tsit5(), *times, y0, throw=False).ys
+        return jax.jit(solve).lower(kepler().y0).as_text()
+
+    assert "callback" not in lowered(*verlet_times)
+    assert "callback" in lowered(*map(jnp.asarray, verlet_times))
 
 
 DEFAULT = ["MidpointVI", "StormerVerlet", "KahanLi8", "Tsit5", "Dopri8", "Dopri8+PID"]

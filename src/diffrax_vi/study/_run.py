@@ -95,8 +95,9 @@ class _Solves(eqx.Module):
     args: PyTree
     ts: Array
     dt0: Array | None
-    # `(t0, t1, dt0)` as NumPy values, known when traced as `solve_fixed_steps`
-    # needs them (the solves are traced as closures over this object).
+    # Fixed steps' `(t0, t1, dt0)` as NumPy values, known when traced as
+    # `solve_fixed_steps` needs them and `diffeqsolve` checks them (the solves are
+    # traced as closures over this object).
     fixed_times: tuple | None
     conserved: dict
     balance_energy: Callable | None
@@ -112,12 +113,19 @@ class _Solves(eqx.Module):
         # as it does alone. A bounded loop is checkpointed for reverse-mode
         # differentiation, which copied the per-interval maxima at every step:
         # fixed steps need no bound.
+        t0, t1, dt0 = self.ts[0], self.ts[-1], self.dt0
+        if self.fixed_times is not None and self.ts.dtype == jnp.result_type(float):
+            # Fixed steps' times as a user writes them, Python floats: diffrax
+            # checks their order when traced, and a Runge-Kutta solve then holds no
+            # host callback, so JAX's persistent cache keeps it. (In float32 they
+            # stay arrays: floats would make diffrax's times float64.)
+            t0, t1, dt0 = (float(x) for x in self.fixed_times)
         return dfx.diffeqsolve(
             self.terms,
             solver,
-            self.ts[0],
-            self.ts[-1],
-            self.dt0,
+            t0,
+            t1,
+            dt0,
             y0,
             args=self.args,
             saveat=saveat,
