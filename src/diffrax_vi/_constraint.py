@@ -66,13 +66,19 @@ from ._tolerance import (
 )
 
 
+# Traced once per signature, as the Lagrangian is (`_lagrangian.lagrangian_value`):
+# a constrained step evaluates the constraint and its Jacobians dozens of times.
+_constraint_call = eqx.filter_jit(lambda g, t, q, args: g(t, q, args))
+
+
 def constraint_values(
     constraint: Callable[..., PyTree], t: RealScalarLike, q: Q, args: Args
 ) -> Float[Array, " m"]:
     """`g(t, q, args)` as a flat array (an array or any pytree of them, in the order
     of its leaves), checked at trace time to be real floating in at least the
     precision of the state."""
-    leaves = [jnp.asarray(x) for x in jtu.tree_leaves(constraint(t, q, args))]
+    values = _constraint_call(constraint, t, q, args)
+    leaves = [jnp.asarray(x) for x in jtu.tree_leaves(values)]
     if sum(x.size for x in leaves) == 0:
         raise ValueError(
             "The constraint returned no values: pass `constraint=None` for an "

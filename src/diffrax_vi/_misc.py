@@ -173,10 +173,24 @@ def reads(fn, x: PyTree, *rest) -> bool:
     computed from `x` (conservative: a primitive with a sub-program is followed as
     a whole). Structural, so a dependence that vanishes at this `x` but not
     elsewhere still counts."""
-    closed = jax.make_jaxpr(fn)(x, *rest)
-    jaxpr = closed.jaxpr
-    dependent = set(jaxpr.invars[: len(jtu.tree_leaves(x))])
+    jaxpr = jax.make_jaxpr(fn)(x, *rest).jaxpr
+    n = len(jtu.tree_leaves(x))
+    return any(_dependent(jaxpr, [i < n for i in range(len(jaxpr.invars))]))
+
+
+def _dependent(jaxpr: jex.Jaxpr, inputs: list[bool]) -> list[bool]:
+    """Which outputs of `jaxpr` depend on the inputs flagged in `inputs`. A nested
+    jit (the Lagrangian's, see `_lagrangian.lagrangian_value`) is followed inside;
+    any other primitive with a sub-program as a whole."""
+    dependent = {v for v, flag in zip(jaxpr.invars, inputs) if flag}
+    read = lambda y: isinstance(y, jex.Var) and y in dependent
     for eqn in jaxpr.eqns:
-        if any(isinstance(y, jex.Var) and y in dependent for y in eqn.invars):
+        flags = [read(y) for y in eqn.invars]
+        if not any(flags):
+            continue
+        if eqn.primitive.name == "jit":
+            outs = _dependent(eqn.params["jaxpr"].jaxpr, flags)
+            dependent.update(y for y, flag in zip(eqn.outvars, outs) if flag)
+        else:
             dependent.update(eqn.outvars)
-    return any(isinstance(y, jex.Var) and y in dependent for y in jaxpr.outvars)
+    return [read(y) for y in jaxpr.outvars]
