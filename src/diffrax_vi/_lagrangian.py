@@ -374,8 +374,8 @@ def as_lagrangian(lagrangian: Callable[..., ArrayLike]) -> AbstractLagrangian:
 # A nested jit: JAX traces the Lagrangian's Python once per signature and then
 # transforms its jaxpr (cached) wherever a step differentiates it again, which a
 # general Lagrangian's implicit step does many times over (48 evaluations in a
-# reversible gradient of the double pendulum: first call 4.97 -> 4.25 s; the
-# four-bar's 4.17 -> 3.74 s, `benchmarks/first_call.py`). XLA inlines it.
+# reversible gradient of the double pendulum; the first calls are in
+# `benchmarks/first_call.py`). XLA inlines it: the steps cost the same.
 _lagrangian_call = eqx.filter_jit(
     lambda lagrangian, t, q, v, args: lagrangian(t, q, v, args)
 )

@@ -171,8 +171,8 @@ def reads(fn, x: PyTree, *rest) -> bool:
     """Whether `fn(x, *rest)` reads `x` at all, decided from its traced program: an
     output counts as reading `x` if any operation on the way to it takes a value
     computed from `x` (conservative: a primitive with a sub-program is followed as
-    a whole). Structural, so a dependence that vanishes at this `x` but not
-    elsewhere still counts."""
+    a whole, except a nested jit, which is followed inside). Structural, so a
+    dependence that vanishes at this `x` but not elsewhere still counts."""
     jaxpr = jax.make_jaxpr(fn)(x, *rest).jaxpr
     n = len(jtu.tree_leaves(x))
     return any(_dependent(jaxpr, [i < n for i in range(len(jaxpr.invars))]))
