@@ -267,3 +267,43 @@ def test_large_affine_legendre_map_does_not_see_the_units(n):
     v_scaled, result_scaled = dvi.velocity(scaled, 0.0, (x, 1e8 * p))
     assert result == result_scaled == dfx.RESULTS.successful
     assert jnp.max(jnp.abs(v - v_scaled)) < 1e-14 * jnp.max(jnp.abs(v))
+
+
+def test_user_functions_are_traced_once_per_signature():
+    """A general Lagrangian's implicit step differentiates the Lagrangian and the
+    constraint dozens of times; each is traced once per signature and JAX transforms
+    that trace (a reversible gradient of a constrained double pendulum called the
+    Lagrangian's Python 69 times and the constraint's 39 without it, against 3 and
+    4). A first call's tracing depends on it (`benchmarks/first_call.py`)."""
+    calls = {"lagrangian": 0, "constraint": 0}
+    scene = dvi.scenes.double_pendulum()
+
+    class CountedLagrangian(dvi.AbstractLagrangian):
+        def __call__(self, t, q, v, args):
+            calls["lagrangian"] += 1
+            return scene.lagrangian(t, q, v, args)
+
+    def constraint(t, q, args):
+        # Holds the angles on a circle through the start.
+        calls["constraint"] += 1
+        return jnp.sum(q**2) - jnp.sum(scene.y0[0] ** 2)
+
+    term = dvi.LagrangianTerm(CountedLagrangian(), constraint=constraint)
+
+    def loss(y0):
+        sol = dfx.diffeqsolve(
+            term,
+            dvi.TrapezoidalVI(),
+            0.0,
+            0.1,
+            0.01,
+            y0,
+            saveat=dfx.SaveAt(t1=True),
+            adjoint=dvi.ReversibleAdjoint(),
+        )
+        return sum(jnp.sum(x) for x in sol.ys)
+
+    jax.jit(jax.grad(loss)).trace(scene.y0)
+    # One trace for each of a few signatures (a time known or traced, a state or a
+    # point on a tangent line).
+    assert 1 <= calls["lagrangian"] <= 4 and 1 <= calls["constraint"] <= 4, calls
