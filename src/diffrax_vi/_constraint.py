@@ -48,7 +48,7 @@ from ._linear import (
     unrolled_lu_factor,
     unrolled_lu_solve,
 )
-from ._misc import all_finite, split_state, state_dtype
+from ._misc import all_finite, call_traced_once, split_state, state_dtype
 from ._root_finders import Newton, solve
 from ._space import (
     is_euclidean,
@@ -66,18 +66,13 @@ from ._tolerance import (
 )
 
 
-# Traced once per signature, as the Lagrangian is (`_lagrangian.lagrangian_value`):
-# a constrained step evaluates the constraint and its Jacobians dozens of times.
-_constraint_call = eqx.filter_jit(lambda g, t, q, args: g(t, q, args))
-
-
 def constraint_values(
     constraint: Callable[..., PyTree], t: RealScalarLike, q: Q, args: Args
 ) -> Float[Array, " m"]:
     """`g(t, q, args)` as a flat array (an array or any pytree of them, in the order
     of its leaves), checked at trace time to be real floating in at least the
     precision of the state."""
-    values = _constraint_call(constraint, t, q, args)
+    values = call_traced_once(constraint, t, q, args)
     leaves = [jnp.asarray(x) for x in jtu.tree_leaves(values)]
     if sum(x.size for x in leaves) == 0:
         raise ValueError(

@@ -14,7 +14,14 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
 from ._linear import krylov_solve, unrolled_lu_solve
-from ._misc import all_finite, reads, split_state, state_dtype, tree_max_abs
+from ._misc import (
+    all_finite,
+    call_traced_once,
+    reads,
+    split_state,
+    state_dtype,
+    tree_max_abs,
+)
 from ._private_api import unvmap_any
 from ._root_finders import Newton, solve
 from ._so3 import SO3
@@ -371,21 +378,11 @@ def as_lagrangian(lagrangian: Callable[..., ArrayLike]) -> AbstractLagrangian:
     return Lagrangian(lagrangian)
 
 
-# A nested jit: JAX traces the Lagrangian's Python once per signature and then
-# transforms its jaxpr (cached) wherever a step differentiates it again, which a
-# general Lagrangian's implicit step does many times over (48 evaluations in a
-# reversible gradient of the double pendulum; the first calls are in
-# `benchmarks/first_call.py`). XLA inlines it: the steps cost the same.
-_lagrangian_call = eqx.filter_jit(
-    lambda lagrangian, t, q, v, args: lagrangian(t, q, v, args)
-)
-
-
 def lagrangian_value(
     lagrangian: AbstractLagrangian, t: RealScalarLike, q: Q, v: V, args: Args
 ) -> Scalar:
     """`L(t, q, v, args)`, checked at trace time to be a real scalar."""
-    out = _lagrangian_call(lagrangian, t, q, v, args)
+    out = call_traced_once(lagrangian, t, q, v, args)
     shape = jnp.shape(out)
     if shape != ():
         raise ValueError(

@@ -167,6 +167,16 @@ def has_loop(jaxpr: jex.Jaxpr) -> bool:
     )
 
 
+# `call_traced_once(f, *args)` is `f(*args)` through a nested jit: JAX traces the
+# user's Python (a Lagrangian, a constraint) once per signature and then transforms
+# its jaxpr (cached) wherever a step differentiates it again, which a general
+# Lagrangian's implicit step does many times over (48 evaluations of the Lagrangian
+# in a reversible gradient of the double pendulum; the first calls are in
+# `benchmarks/first_call.py`). XLA inlines it: the steps cost the same. `reads`
+# follows it inside.
+call_traced_once = eqx.filter_jit(lambda f, *args: f(*args))
+
+
 def reads(fn, x: PyTree, *rest) -> bool:
     """Whether `fn(x, *rest)` reads `x` at all, decided from its traced program: an
     output counts as reading `x` if any operation on the way to it takes a value
@@ -180,8 +190,8 @@ def reads(fn, x: PyTree, *rest) -> bool:
 
 def _dependent(jaxpr: jex.Jaxpr, inputs: list[bool]) -> list[bool]:
     """Which outputs of `jaxpr` depend on the inputs flagged in `inputs`. A nested
-    jit (the Lagrangian's, see `_lagrangian.lagrangian_value`) is followed inside;
-    any other primitive with a sub-program as a whole."""
+    jit (`call_traced_once`'s) is followed inside; any other primitive with a
+    sub-program as a whole."""
     dependent = {v for v, flag in zip(jaxpr.invars, inputs) if flag}
     read = lambda y: isinstance(y, jex.Var) and y in dependent
     for eqn in jaxpr.eqns:
