@@ -451,6 +451,24 @@ def test_the_backward_pass_solves_each_step_once():
     assert rod_solves(dvi.ReversibleAdjoint(checkpoint_every=4)) == 6
 
 
+def test_a_gradient_traces_each_kind_of_step_once():
+    """Tracing a reversible gradient runs the solver's step in Python once for each
+    kind of step it takes: the forward solve's, the inverse step's (from a jump)
+    and the repeated forward step's (with the inverse step's root). JAX traces the
+    forward loop twice (a custom VJP's function, then its forward rule); the second
+    trace must reuse the first, or it traces the forward step again in a context it
+    tells apart (4 calls; the first calls are in `benchmarks/first_call.py`)."""
+    calls = []
+
+    class Counted(dvi.MidpointVI):
+        def _fractional_step(self, *args, **kwargs):
+            calls.append(None)
+            return super()._fractional_step(*args, **kwargs)
+
+    jax.jit(jax.grad(_kepler_loss(dvi.ReversibleAdjoint(), Counted()))).trace(KEPLER_Y0)
+    assert len(calls) == 3
+
+
 def _final_gradient(scene, solver, adjoint, forced):
     """d/dy0 of a scalar of the scene's final state after 60 steps, with a force of
     time and position where `forced`."""

@@ -309,6 +309,25 @@ class _Recorder(dfx.AbstractStepSizeController):
 _is_none = lambda x: x is None
 
 
+_LAX_WHILE = ft.partial(eqxi.while_loop, kind="lax")
+
+
+def _forward_loop(adjoint, **kwargs):
+    """`adjoint._loop(**kwargs)` traced once per program. JAX traces a custom VJP's
+    function, and then its forward rule, which runs the function again, through a
+    nested jit whose cache is keyed on the abstract mesh in use: unset in a user's
+    trace, set (empty) where JAX traces a rule from a traced program. Pinned here to
+    the mesh in use, both traces of the loop share one entry, and so do the steps
+    traced in it and in the backward pass (`benchmarks/first_call.py`)."""
+    with jax.sharding.use_abstract_mesh(jax.sharding.get_abstract_mesh()):
+        return _forward_loop_jit(adjoint, **kwargs)
+
+
+@eqx.filter_jit
+def _forward_loop_jit(adjoint, **kwargs):
+    return adjoint._loop(**kwargs)
+
+
 @eqx.filter_custom_vjp
 def _loop_reversible(vjp_arg, *, self, throw, init_state, max_steps, **kwargs):
     del throw
@@ -325,14 +344,15 @@ def _loop_reversible(vjp_arg, *, self, throw, init_state, max_steps, **kwargs):
         (y, recording),
         is_leaf=_is_none,
     )
-    final_state, aux_stats = self._loop(
+    final_state, aux_stats = _forward_loop(
+        self,
         args=args,
         terms=terms,
         stepsize_controller=_Recorder(controller),
         init_state=init_state,
         max_steps=max_steps,
-        inner_while_loop=ft.partial(eqxi.while_loop, kind="lax"),
-        outer_while_loop=ft.partial(eqxi.while_loop, kind="lax"),
+        inner_while_loop=_LAX_WHILE,
+        outer_while_loop=_LAX_WHILE,
         **kwargs,
     )
     inner, times, _ = final_state.controller_state
