@@ -309,6 +309,7 @@ class _Recorder(dfx.AbstractStepSizeController):
 _is_none = lambda x: x is None
 
 
+# One object, so that the nested jit below sees equal static arguments each time.
 _LAX_WHILE = ft.partial(eqxi.while_loop, kind="lax")
 
 
