@@ -28,7 +28,7 @@ import jax.tree_util as jtu
 from ._adaptive import ReversibleController, ReversibleState
 from ._force import depends_on_velocity
 from ._lagrangian import Lagrangian
-from ._misc import tree_size
+from ._misc import call_traced_once, tree_size
 from ._private_api import (
     clip_to_end,
     is_subsaveat,
@@ -321,12 +321,7 @@ def _forward_loop(adjoint, **kwargs):
     the mesh in use, both traces of the loop share one entry, and so do the steps
     traced in it and in the backward pass (`benchmarks/first_call.py`)."""
     with jax.sharding.use_abstract_mesh(jax.sharding.get_abstract_mesh()):
-        return _forward_loop_jit(adjoint, **kwargs)
-
-
-@eqx.filter_jit
-def _forward_loop_jit(adjoint, **kwargs):
-    return adjoint._loop(**kwargs)
+        return call_traced_once(adjoint._loop, **kwargs)
 
 
 @eqx.filter_custom_vjp

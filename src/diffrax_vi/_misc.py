@@ -167,14 +167,15 @@ def has_loop(jaxpr: jex.Jaxpr) -> bool:
     )
 
 
-# `call_traced_once(f, *args)` is `f(*args)` through a nested jit: JAX traces the
-# user's Python (a Lagrangian, a constraint) once per signature and then transforms
-# its jaxpr (cached) wherever a step differentiates it again, which a general
-# Lagrangian's implicit step does many times over (48 evaluations of the Lagrangian
-# in a reversible gradient of the double pendulum; the first calls are in
-# `benchmarks/first_call.py`). XLA inlines it: the steps cost the same. `reads`
+# `call_traced_once(f, *args, **kwargs)` is `f(*args, **kwargs)` through a nested
+# jit: JAX traces `f` once per signature and then transforms its jaxpr (cached)
+# wherever it is called or differentiated again. A general Lagrangian's implicit
+# step differentiates the user's Lagrangian and constraint many times over (48
+# evaluations of the Lagrangian in a reversible gradient of the double pendulum),
+# and `ReversibleAdjoint` runs its forward loop twice; the first calls are in
+# `benchmarks/first_call.py`. XLA inlines it: the steps cost the same. `reads`
 # follows it inside.
-call_traced_once = eqx.filter_jit(lambda f, *args: f(*args))
+call_traced_once = eqx.filter_jit(lambda f, *args, **kwargs: f(*args, **kwargs))
 
 
 def reads(fn, x: PyTree, *rest) -> bool:
