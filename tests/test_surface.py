@@ -13,7 +13,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.random as jr
+import lineax as lx
 import numpy as np
+import optimistix as optx
 import pytest
 from diffrax_vi import scenes
 from diffrax_vi._private_api import (
@@ -25,6 +27,7 @@ from diffrax_vi._private_api import (
     NoForwardingSolverMeta,
     nondiff_solver_controller_state,
     only_transpose_ys,
+    promote_result,
     save_y,
     unvmap_any,
     use_stepsize_tol,
@@ -332,6 +335,13 @@ def test_private_api_assumptions():
             pair.term_structure,
             pair.term_compatible_contr_kwargs,
         )
+    # diffrax's results promote optimistix's and lineax's: promote_result is
+    # equinox's promotion, item for item.
+    for results in (optx.RESULTS, lx.RESULTS):
+        for name in results._name_to_item:
+            item = getattr(results, name)
+            assert promote_result(item) == dfx.RESULTS.promote(item)
+            assert promote_result(item) == getattr(dfx.RESULTS, name)
     # An implicit solver's root finder leaves its tolerances to the controller.
     assert dfx.Kvaerno5().root_finder.rtol is use_stepsize_tol
     # BacksolveAdjoint's backward solve hands the solver an AdjointTerm.

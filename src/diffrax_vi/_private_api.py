@@ -8,6 +8,10 @@ inside a solve.
 
 import diffrax as dfx
 import equinox.internal as eqxi
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
 from diffrax._adjoint import (  # What a custom adjoint does as diffrax's own do.
     _is_subsaveat as is_subsaveat,
     _nondiff_solver_controller_state as nondiff_solver_controller_state,
@@ -27,6 +31,7 @@ from diffrax._term import (  # What `diffeqsolve` hands solvers instead of our t
     AdjointTerm,  # BacksolveAdjoint's backward solve.
     WrapTerm,  # Every solve.
 )
+from equinox._enum import EnumerationItem  # An enumeration's item from its value.
 from jax._src.compilation_cache import (  # The persistent cache, set up once.
     reset_cache as reset_compilation_cache,
 )
@@ -41,6 +46,7 @@ __all__ = [
     "clip_to_end",
     "is_subsaveat",
     "nondiff_solver_controller_state",
+    "promote_result",
     "reset_compilation_cache",
     "only_transpose_ys",
     "save_y",
@@ -70,3 +76,16 @@ def unvmap_any(x: bool | Bool[ArrayLike, "..."]) -> Bool[ArrayLike, ""]:
     """True if `x` is true in any batch element: lets a branch stay a real branch under
     `jax.vmap` instead of becoming a select that evaluates both sides."""
     return eqxi.unvmap_any(x)
+
+
+def promote_result(result: optx.RESULTS | lx.RESULTS) -> dfx.RESULTS:
+    """`diffrax.RESULTS.promote(result)` for an optimistix or lineax result, without
+    equinox's look-up of its table under `jax.ensure_compile_time_eval`, which
+    compiles two small programs the first time a process promotes (20 ms of a first
+    trace). Where the table (`_base_offsets`) maps each value to itself, as it does
+    for both, the value is taken as it is."""
+    offsets = dfx.RESULTS._base_offsets[result._enumeration]
+    value = result._value
+    if not np.array_equal(offsets, np.arange(len(offsets))):
+        value = jnp.asarray(offsets)[value]
+    return EnumerationItem(value, dfx.RESULTS)

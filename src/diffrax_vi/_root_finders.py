@@ -46,7 +46,7 @@ from ._linear import (
     unrolled_lu_solve,
 )
 from ._misc import tree_dtype, tree_size, tree_sub
-from ._private_api import unvmap_any
+from ._private_api import promote_result, unvmap_any
 from ._tolerance import (
     check_fraction,
     FAST_CONTRACTION,
@@ -703,7 +703,7 @@ def solve(
     )
     return Solved(
         sol.value,
-        dfx.RESULTS.promote(sol.result),
+        promote_result(sol.result),
         jnp.ones((), dtype),
         carry,
         jnp.full((), jnp.nan, dtype),
@@ -733,7 +733,7 @@ def _finder(
         )
         return Solved(
             sol.value,
-            dfx.RESULTS.promote(sol.result),
+            promote_result(sol.result),
             root_finder.pivot_ratio(sol.state),
             root_finder.final_carry(sol.state),
             root_finder.curvature(sol.state, guess, sol.value),

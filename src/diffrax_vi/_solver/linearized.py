@@ -29,7 +29,7 @@ from .._misc import (
     tree_size,
     tree_sub,
 )
-from .._private_api import unvmap_any
+from .._private_api import promote_result, unvmap_any
 from .._root_finders import Newton
 from .._space import is_euclidean
 from .._tolerance import (
@@ -309,7 +309,7 @@ class LinearizedVI(AbstractVariationalSolver):
         _, p1 = average_grads(
             self.discrete_lagrangian, lagrangian, tp0, h, q0, v, step.args
         )
-        result = start_result(step, all_finite(qs), dfx.RESULTS.promote(linear_result))
+        result = start_result(step, all_finite(qs), promote_result(linear_result))
         if self.max_del_residual is not None:
             # The triple this step linearized about has left the DEL manifold S: the
             # linearization no longer follows the variational integrator.
