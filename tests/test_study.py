@@ -372,6 +372,24 @@ def test_cli_help_and_bad_options_answer_without_jax():
     assert done.stdout.strip() == "ok", done.stderr
 
 
+def test_only_the_console_script_freezes_the_heap(monkeypatch):
+    """The `diffrax-vi` command (`command`) runs in a process of its own and moves
+    what it imported out of the garbage collector's way; `main`, which a user may
+    call from their own process, leaves that process's collector as it is."""
+    import gc
+
+    import _diffrax_vi_cli as cli
+    import diffrax_vi.cli
+
+    frozen = []
+    monkeypatch.setattr(gc, "freeze", lambda: frozen.append(True))
+    monkeypatch.setattr(diffrax_vi.cli, "run", lambda args: 0)
+    argv = ["diffrax-vi", "drift", "--scene", "kepler"]
+    monkeypatch.setattr(sys, "argv", argv)
+    assert cli.main(argv[1:]) == 0 and not frozen
+    assert cli.command() == 0 and frozen == [True]
+
+
 def test_cli_scene_names_are_the_scenes():
     from _diffrax_vi_cli import SCENE_NAMES
 

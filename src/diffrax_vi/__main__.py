@@ -1,7 +1,7 @@
 import sys
 
-from .cli import main
+from _diffrax_vi_cli import command
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(command())
