@@ -33,7 +33,7 @@ BIN = pathlib.Path(sys.executable).parent
 # The main job, recording the span of the study's tracing and compilation.
 PHASES = """
 import sys, time
-from diffrax_vi.cli import main
+from _diffrax_vi_cli import main
 from diffrax_vi.study import _run
 
 spans = []
@@ -48,7 +48,7 @@ def timed(*args, **kwargs):
 
 
 _run.prepare = timed
-main(sys.argv[1:])
+main(sys.argv[1:], own_process=True)  # As the console script runs it.
 print(max(e for _, e in spans) - min(s for s, _ in spans))
 """
 

@@ -34,7 +34,7 @@ from jaxtyping import Array, ArrayLike, Bool
 from .._lagrangian import AbstractRigidBodyLagrangian, mass_regular
 from .._misc import all_finite
 from .._root_finders import known_root, Newton, solve
-from .._so3 import SO3
+from .._so3 import cross, SO3
 from .._space import left_gradient, retract, transport
 from .base import (
     AbstractComposableSolver,
@@ -172,7 +172,7 @@ class LGVI(
         g = h * kicked
 
         def residual(f):
-            gf, fg = jnp.cross(g, f), jnp.sum(f * g)
+            gf, fg = cross(g, f), jnp.sum(f * g)
             r = 2 * inertia * f - g - gf - fg * f
             s = 2 * inertia * jnp.abs(f) + jnp.abs(g) + jnp.abs(gf) + jnp.abs(fg * f)
             return r, s
