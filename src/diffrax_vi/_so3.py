@@ -39,11 +39,16 @@ def vee(skew: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
 
 
 def cross(a: Float[Array, "*batch 3"], b: Float[Array, "*batch 3"]) -> Array:
-    """`a x b` (of each pair of a stack) as `hat(a) b`. `jnp.cross` slices its
-    arguments and concatenates the products, which a step's reverse-mode
-    derivatives of the Lagrangian transpose into pads: one rigid body's
-    `MidpointVI` and `TrapezoidalVI` steps took 1.6 against 1.1 us
-    (`benchmarks/lie_groups.py`)."""
+    """`a x b` (of each pair of a stack). For one pair, `hat(a) b`: `jnp.cross`
+    slices its arguments and concatenates the products, which a step's
+    reverse-mode derivatives of the Lagrangian transpose into pads, and one rigid
+    body's `MidpointVI` and `TrapezoidalVI` steps took 1.6 against 1.1 us
+    (`benchmarks/lie_groups.py`). For a stack, `jnp.cross`: as `hat(a) b`, the
+    products of a 16-link chain's Newton matrix became YNNPACK reductions, which
+    break its loop into more kernels, and its step took 3338 against 2433 us
+    (`benchmarks/multibody.py`)."""
+    if a.ndim > 1:
+        return jnp.cross(a, b)
     return matvec(hat(a), b)
 
 
