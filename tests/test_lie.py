@@ -284,6 +284,22 @@ def test_so3_pull_is_the_transposed_right_derivative_of_exp():
         assert jnp.max(jnp.abs(space.pull(x, w) - definition(x, w))) < 1e-14, scale
 
 
+def test_so3_cross_products_equal_numpys():
+    """SO(3)'s cross product (`hat(a) b` for one pair, `jnp.cross` for a stack)
+    against NumPy's, with its reverse-mode derivative against the product rule:
+    d(a x b) = da x b + a x db."""
+    from diffrax_vi._so3 import cross
+
+    rng = np.random.default_rng(0)
+    for shape in [(3,), (4, 3)]:
+        a, b, c = (jnp.asarray(rng.normal(size=shape)) for _ in range(3))
+        assert np.max(np.abs(cross(a, b) - np.cross(a, b))) < 1e-15
+        da, db = jax.grad(lambda a, b: jnp.sum(c * cross(a, b)), argnums=(0, 1))(a, b)
+        # c . (a x b) = a . (b x c) = b . (c x a).
+        assert np.max(np.abs(da - np.cross(b, c))) < 1e-15
+        assert np.max(np.abs(db - np.cross(c, a))) < 1e-15
+
+
 def test_so3_exp_and_its_derivatives_equal_jaxlies():
     """The exponential map and its closed-form derivative, D exp(x)[y] = exp(x)
     hat(J(x)^T y), against jaxlie's exp and automatic differentiation through its
