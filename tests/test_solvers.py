@@ -4,6 +4,7 @@ import equinox as eqx
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import pytest
 
@@ -472,6 +473,25 @@ def test_non_finite_position_of_a_free_particle(name, solver):
     free = dvi.SeparableLagrangian(lambda t, q, args: 0.0 * jnp.sum(q))
     sol = _solve(free, solver, (jnp.array([jnp.nan, 0.0]), jnp.ones(2)), throw=False)
     assert sol.result == dfx.RESULTS.nonfinite
+
+
+def test_newton_takes_any_lineax_solver():
+    """Newton's method with a lineax solver in place of its own elimination (here
+    lineax's LAPACK LU, an independent solve) takes the same steps on the double
+    pendulum under MidpointVI over 150 steps, to round-off, and reports success
+    as diffrax's result."""
+    scene = dvi.scenes.double_pendulum()
+    h = scene.period / 100
+
+    def solve(linear_solver):
+        solver = dvi.MidpointVI(root_finder=dvi.Newton(linear_solver=linear_solver))
+        return dfx.diffeqsolve(scene.term(), solver, 0.0, 150 * h, h, scene.y0)
+
+    ours, reference = solve(lx.LU()), solve("dense")
+    assert ours.result == dfx.RESULTS.successful
+    size = max(float(jnp.max(jnp.abs(x))) for x in jax.tree.leaves(reference.ys))
+    assert max_abs_diff(ours.ys, reference.ys) < 1e-12 * size
+    assert max_abs_diff(ours.ys, jax.tree.map(lambda x: x[None], scene.y0)) > 0.1
 
 
 def test_simplified_newton_takes_newtons_steps_without_lapack_lu():

@@ -335,13 +335,17 @@ def test_private_api_assumptions():
             pair.term_structure,
             pair.term_compatible_contr_kwargs,
         )
-    # diffrax's results promote optimistix's and lineax's: promote_result is
-    # equinox's promotion, item for item.
-    for results in (optx.RESULTS, lx.RESULTS):
+    # diffrax's results promote optimistix's and lineax's, and optimistix's
+    # lineax's: promote_result is equinox's promotion, item for item.
+    for cls, results in [
+        (dfx.RESULTS, optx.RESULTS),
+        (dfx.RESULTS, lx.RESULTS),
+        (optx.RESULTS, lx.RESULTS),
+    ]:
         for name in results._name_to_item:
             item = getattr(results, name)
-            assert promote_result(item) == dfx.RESULTS.promote(item)
-            assert promote_result(item) == getattr(dfx.RESULTS, name)
+            assert promote_result(cls, item) == cls.promote(item)
+            assert promote_result(cls, item) == getattr(cls, name)
     # An implicit solver's root finder leaves its tolerances to the controller.
     assert dfx.Kvaerno5().root_finder.rtol is use_stepsize_tol
     # BacksolveAdjoint's backward solve hands the solver an AdjointTerm.

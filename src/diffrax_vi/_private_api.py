@@ -78,14 +78,17 @@ def unvmap_any(x: bool | Bool[ArrayLike, "..."]) -> Bool[ArrayLike, ""]:
     return eqxi.unvmap_any(x)
 
 
-def promote_result(result: optx.RESULTS | lx.RESULTS) -> dfx.RESULTS:
-    """`diffrax.RESULTS.promote(result)` for an optimistix or lineax result, without
-    equinox's look-up of its table under `jax.ensure_compile_time_eval`, which
-    compiles two small programs the first time a process promotes (20 ms of a first
-    trace). Where the table (`_base_offsets`) maps each value to itself, as it does
-    for both, the value is taken as it is."""
-    offsets = dfx.RESULTS._base_offsets[result._enumeration]
+def promote_result(
+    cls: type, result: optx.RESULTS | lx.RESULTS
+) -> dfx.RESULTS | optx.RESULTS:
+    """`cls.promote(result)` (`cls` diffrax's or optimistix's results, `result` an
+    optimistix or lineax one), without equinox's look-up of its table under
+    `jax.ensure_compile_time_eval`, which compiles two small programs the first
+    time a process promotes (20 ms of a first trace). Where the table
+    (`_base_offsets`) maps each value to itself, as each of these does, the value
+    is taken as it is."""
+    offsets = cls._base_offsets[result._enumeration]
     value = result._value
     if not np.array_equal(offsets, np.arange(len(offsets))):
         value = jnp.asarray(offsets)[value]
-    return EnumerationItem(value, dfx.RESULTS)
+    return EnumerationItem(value, cls)

@@ -278,7 +278,7 @@ class Newton(AbstractNewtonFamily):
             matrix = None
             if not isinstance(self.linear_solver, str):
                 sol = lx.linear_solve(operator, f, self.linear_solver, throw=False)
-                delta, result = sol.value, optx.RESULTS.promote(sol.result)
+                delta, result = sol.value, promote_result(optx.RESULTS, sol.result)
             elif self.dense(y):
                 flat_f, _ = jax.flatten_util.ravel_pytree(f)
                 matrix = operator.as_matrix()
@@ -703,7 +703,7 @@ def solve(
     )
     return Solved(
         sol.value,
-        promote_result(sol.result),
+        promote_result(dfx.RESULTS, sol.result),
         jnp.ones((), dtype),
         carry,
         jnp.full((), jnp.nan, dtype),
@@ -733,7 +733,7 @@ def _finder(
         )
         return Solved(
             sol.value,
-            promote_result(sol.result),
+            promote_result(dfx.RESULTS, sol.result),
             root_finder.pivot_ratio(sol.state),
             root_finder.final_carry(sol.state),
             root_finder.curvature(sol.state, guess, sol.value),

@@ -309,7 +309,9 @@ class LinearizedVI(AbstractVariationalSolver):
         _, p1 = average_grads(
             self.discrete_lagrangian, lagrangian, tp0, h, q0, v, step.args
         )
-        result = start_result(step, all_finite(qs), promote_result(linear_result))
+        result = start_result(
+            step, all_finite(qs), promote_result(dfx.RESULTS, linear_result)
+        )
         if self.max_del_residual is not None:
             # The triple this step linearized about has left the DEL manifold S: the
             # linearization no longer follows the variational integrator.
