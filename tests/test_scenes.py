@@ -8,6 +8,7 @@ import jax.random as jr
 import numpy as np
 import pytest
 from diffrax_vi import scenes
+from diffrax_vi.scenes._learned import _trajectories
 from diffrax_vi.study import reference_state
 
 from .helpers import max_abs_diff, reference, solve
@@ -129,6 +130,25 @@ def test_perturbed_states_of_a_constrained_scene_keep_its_constraint(getkey):
     assert np.max(np.abs(np.sum(np.asarray(q) * np.asarray(p), axis=-1))) < 1e-14
     assert np.allclose(q[0], scene.y0[0], rtol=0, atol=1e-15)
     assert 1e-3 < np.std(np.asarray(q[1:, 0])) < 1e-1
+
+
+def test_learned_training_data_in_float32():
+    """The learned scene's training data (Dopri8 trajectories of the pendulum) are
+    computed in JAX's default float32 too: the reference tolerance follows the
+    dtype, since an adaptive solve never meets 1e-12 in float32 (it ran out of
+    steps, and `scenes.learned()` failed without 64-bit mode)."""
+    amplitude = jnp.asarray([2.0], jnp.float32)
+    ts = jnp.linspace(0.0, 6.0, 61, dtype=jnp.float32)
+    qs = _trajectories(
+        scenes.PendulumLagrangian(),
+        dfx.Dopri8(),
+        (amplitude, jnp.zeros_like(amplitude)),
+        ts,
+    )
+    assert qs.dtype == jnp.float32
+    exact = reference(scenes.PendulumLagrangian(), (2.0, 0.0), 6.0)
+    # Float32 round-off over 6 time units, not the tolerance of a float64 solve.
+    assert abs(float(qs[0, -1]) - float(exact[0])) < 1e-4
 
 
 @pytest.mark.slow
