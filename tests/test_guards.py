@@ -112,6 +112,30 @@ def test_zero_mass_is_singular_and_a_small_one_is_not():
             assert np.allclose(sol.ys[0][-1], -y0[0], atol=1e-4), (solver, c)
 
 
+def test_masses_far_apart_are_regular_in_float32():
+    """A diagonal mass is singular only where an entry is zero: masses 1e-9 apart
+    (the outer solar system's Pluto is 7.7e-9 of the Sun) are regular in float32
+    too, whichever coordinate is the light one. A ratio test between the entries
+    called them singular, and would change with each coordinate's units. Each
+    coordinate is a unit-frequency oscillator: half a period later q = -q0."""
+    f32 = lambda x: jnp.asarray(x, jnp.float32)
+    y0 = (f32([0.3, 0.5]), f32([0.0, 0.0]))
+    t1, dt = f32(np.pi), f32(np.pi / 200)
+    for masses in ([1.0, 1e-9], [1e-9, 1.0]):
+        mass = f32(masses)
+        lagrangian = dvi.SeparableLagrangian(
+            lambda t, q, m: 0.5 * jnp.sum(m * q**2), mass=mass
+        )
+        for solver in (dvi.MidpointVI(), dvi.TrapezoidalVI(), dvi.StormerVerlet()):
+            sol = _solve(lagrangian, solver, y0, t1=t1, dt=dt, args=mass)
+            assert sol.ys[0].dtype == jnp.float32
+            assert np.allclose(sol.ys[0][-1], -y0[0], atol=1e-4), (solver, masses)
+        sol = dfx.diffeqsolve(
+            dvi.LagrangianTerm(lagrangian), dfx.Tsit5(), f32(0), t1, dt, y0, mass
+        )
+        assert np.allclose(sol.ys[0][-1], -y0[0], atol=1e-4), masses
+
+
 def test_linearized_guard_is_unit_free():
     """Centered LinearizedVI on Kepler (e = 0.6, 200 steps per period) follows a
     parasitic mode and explodes: unguarded it reports success; guarded it fails near
