@@ -43,6 +43,7 @@ from ._one_dof import (
 )
 from ._rigid import (
     free_rigid_body as free_rigid_body,
+    FreeRigidBodyLagrangian as FreeRigidBodyLagrangian,
     heavy_top as heavy_top,
     pendulum_3d as pendulum_3d,
     RigidBodyLagrangian as RigidBodyLagrangian,
