@@ -815,7 +815,7 @@ def _implicit_solve(find, residual, guess, preconditioner, carry) -> Solved:
     (lineax checks its solves) in a gradient's backward loop, either of which
     breaks it into kernels dispatched one by one (`diagnostics.loop_breakers`).
     Gradients of the Kepler, double pendulum, free rigid body, heavy top and
-    four-bar solves run 3.5-14.2x faster, the same to round-off
+    four-bar solves run 3.4-12.7x faster, the same to round-off
     (`benchmarks/gradient_loops.py`). A Jacobian singular at the root (which a
     Newton-type solve has already reported as `RESULTS.singular`) gives a gradient
     that is not finite."""

@@ -27,10 +27,9 @@ class RigidBodyLagrangian(AbstractRigidBodyLagrangian):
 class FreeRigidBodyLagrangian(AbstractRigidBodyLagrangian):
     r"""$L(\Omega) = \tfrac12\Omega^\top J\Omega$: a rigid body in no field, with
     principal moments of inertia $J$ (diagonal). With no potential, $L$ does not
-    read the attitude, so no solver differentiates through it: a `MidpointVI`
-    step's program is a third smaller than with a zero weight in
-    [`diffrax_vi.scenes.RigidBodyLagrangian`][], and compiles that much sooner
-    (`benchmarks/first_call.py`)."""
+    read the attitude, so no solver differentiates through it, and its solves
+    compile sooner than with a zero weight in
+    [`diffrax_vi.scenes.RigidBodyLagrangian`][] (`benchmarks/first_call.py`)."""
 
     inertia: Float[Array, " 3"]
 
