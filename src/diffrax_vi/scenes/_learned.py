@@ -105,9 +105,9 @@ def learned(seed: int = 0, max_steps: int = 300) -> Scene:
     by [`diffrax_vi.scenes.fit_potential`][] to eight pendulum trajectories
     (amplitudes 0.3 to 2, six time units at step 0.1, from Dopri8 at tolerance
     $10^{-12}$ in float64, ten times the round-off in float32), by differentiating
-    through `MidpointVI`. Started from rest at
-    amplitude 1.5; the time scale is the true pendulum's period at that amplitude.
-    The first call trains (tens of seconds on a CPU); later calls reuse the result."""
+    through `MidpointVI`. Started from rest at amplitude 1.5; the time scale is the
+    true pendulum's period at that amplitude. The first call trains (tens of seconds
+    on a CPU); later calls reuse the result."""
     check_count("learned", max_steps=max_steps)
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise ValueError(f"learned(seed=...) needs an integer; got {seed!r}.")
