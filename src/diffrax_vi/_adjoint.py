@@ -412,13 +412,17 @@ def _loop_reversible_bwd(
     init_state,
     progress_meter,
 ):
-    del perturbed, event, t0, dt0, progress_meter
+    del event, t0, dt0, progress_meter
     y_final, w_final, ys, solver_state, num_steps, times = residuals
     grad_ys = jtu.tree_map(_materialise, ys, grad_out[0].save_state.ys)
     y0, args, terms, controller = vjp_arg
-    diff_args, nondiff_args = eqx.partition(args, eqx.is_inexact_array)
-    diff_terms, nondiff_terms = eqx.partition(terms, eqx.is_inexact_array)
-    diff_ctrl, nondiff_ctrl = eqx.partition(controller, eqx.is_inexact_array)
+    # Only what is differentiated (`perturbed`) gets a cotangent: a gradient with
+    # respect to the initial state does not differentiate each step through the
+    # Lagrangian's parameters too.
+    _, p_args, p_terms, p_ctrl = perturbed
+    diff_args, nondiff_args = eqx.partition(args, p_args)
+    diff_terms, nondiff_terms = eqx.partition(terms, p_terms)
+    diff_ctrl, nondiff_ctrl = eqx.partition(controller, p_ctrl)
     reversible = isinstance(controller, ReversibleController)
     if reversible:
         dt0 = init_state.controller_state.dt0
@@ -582,7 +586,7 @@ def _loop_reversible_bwd(
     a_y = a_ext[1] if reversible else a_ext
     if subs.t0:
         a_y = jtu.tree_map(lambda a, g: a + g[0], a_y, grad_ys)
-    if reversible and eqx.is_inexact_array(controller.density):
+    if reversible and p_ctrl.density is True:
         a_ctrl = eqx.tree_at(lambda c: c.density, a_ctrl, a_ctrl.density + a_ext[2])
     grads = (a_y, a_args, a_terms, a_ctrl)
     if throw:
