@@ -169,7 +169,6 @@ class _Pendulum(dvi.AbstractSeparableLagrangian):
         return self.gravity * q[1]
 
 
-
 @pytest.mark.parametrize("wrt", ["y0", "gm"])
 def test_a_gradient_with_respect_to_some_inputs_only(wrt):
     """The backward pass gives cotangents to what is differentiated only: with
@@ -206,6 +205,7 @@ def test_a_gradient_with_respect_to_some_inputs_only(wrt):
     reference = gradient(dfx.RecursiveCheckpointAdjoint())
     assert all(float(jnp.max(jnp.abs(g))) > 1e-3 for g in jax.tree.leaves(reference))
     assert _relative_error(ours, reference) < 1e-8
+
 
 def _circle(t, q, args):
     return jnp.sum(q**2) - args**2

@@ -150,10 +150,12 @@ class ReversibleAdjoint(dfx.AbstractAdjoint):
     ([`diffrax_vi.ReversibleController`][]), saving at `t0`, `t1` and `ts`.
     Gradients flow to `y0`, `args`, every array of the terms (the Lagrangian's
     parameters, a force's, a constraint's) and of a `ReversibleController` (its
-    monitor's parameters, its initial `density`). Under `ReversibleController` the
-    step sizes depend on the state, and the gradient includes that dependence, as
-    diffrax's own adjoints do; the step density is rebuilt backwards with the
-    states.
+    monitor's parameters, its initial `density`); the backward pass differentiates
+    each step with respect to those a gradient asks for only (a gradient with
+    respect to `y0` carries no cotangent of the Lagrangian's parameters through
+    the steps). Under `ReversibleController` the step sizes depend on the state,
+    and the gradient includes that dependence, as diffrax's own adjoints do; the
+    step density is rebuilt backwards with the states.
 
     The forward solve is the plain solve. The gradient is the derivative of the
     discrete solve (as `diffrax.RecursiveCheckpointAdjoint` computes it), evaluated at
