@@ -20,8 +20,7 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._custom_types import V
 from .._lagrangian import (
-    AbstractSeparableLagrangian,
-    broadcast_mass,
+    constant_mass,
     mass_regular,
     momentum,
     velocity,
@@ -60,9 +59,9 @@ class Start(eqx.Module):
 def check_start(step: StepInputs) -> Start:
     """Invert the Legendre map at the start and check the Lagrangian there: that
     $\\partial^2 L/\\partial v^2$ is invertible to working precision (its extreme
-    eigenvalues: dense up to 64 degrees of freedom, Lanczos beyond; the masses of a
-    separable Lagrangian). (`velocity` checks that one marked quadratic keeps its
-    promise.)"""
+    eigenvalues: dense up to 64 degrees of freedom, Lanczos beyond; the entries of
+    a declared constant diagonal mass, a separable Lagrangian's or rigid bodies').
+    (`velocity` checks that one marked quadratic keeps its promise.)"""
     lagrangian, t, q, p, args = (
         step.term.lagrangian,
         step.t0,
@@ -74,8 +73,12 @@ def check_start(step: StepInputs) -> Start:
     # constraint's index-reduced forces), which the start does not need.
     v0, result = velocity(lagrangian, t, (q, p), args)
     n = tree_size(p)
-    if isinstance(lagrangian, AbstractSeparableLagrangian):
-        mass = broadcast_mass(lagrangian.mass, p)
+    mass = constant_mass(lagrangian, p)
+    if mass is not None:
+        # A declared constant diagonal mass (separable, rigid bodies): its entries
+        # are the eigenvalues. No eigensolver, whose LAPACK call is the only one
+        # in a rigid body's program (and the first in a process imports SciPy's
+        # linalg to lower it: 0.17 s of the free body's first call).
         regular = mass_regular(mass, p)
         positive = jnp.all(jnp.stack([jnp.all(m > 0) for m in jtu.tree_leaves(mass)]))
     else:
