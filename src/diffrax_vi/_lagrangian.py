@@ -559,8 +559,14 @@ def _affine_velocity(lagrangian, t, q, p, args, krylov: bool) -> tuple[V, dfx.RE
     # makes the derivative the implicit one, D^{-1} (db - dD v), even at a point
     # where the mass happens to be diagonal and its derivative is not.
     v = jtu.tree_map(lambda x, w, ri: x + w * ri, jacobi, weights, r)
+    # The Jacobi step solved the system (so `D` is d2L/dv2) where it leaves a
+    # residual at round-off of a right-hand side that is not zero. A zero one (the
+    # momentum at rest) is solved by v = 0 whatever the matrix, and tells nothing
+    # of it: the diagonal estimate of a coupled mass (the double pendulum's) can
+    # vanish there, which must not read as a singular diagonal mass.
+    size = tree_max_abs(rhs)
     diagonal = lax.stop_gradient(
-        tree_max_abs(r) <= KRYLOV_FLOOR * eps * tree_max_abs(rhs)
+        (size > 0) & (tree_max_abs(r) <= KRYLOV_FLOOR * eps * size)
     )
     solved = diagonal & regular
 
