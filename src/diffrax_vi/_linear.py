@@ -34,9 +34,16 @@ def product(a: Array, b: Array) -> Array:
     return jnp.sum(a[:, :, None] * b[None, :, :], axis=1)
 
 
+def _ratio(small: Scalar, large: Scalar) -> Scalar:
+    """`small / large` for `0 <= small <= large`, and 0 for a zero matrix (0/0
+    would be NaN, which a test `ratio <= threshold` reads as regular); NaN stays NaN
+    (a NaN Lagrangian is not a singular one)."""
+    return jnp.where(large == 0, jnp.zeros_like(large), small / large)
+
+
 def pivot_ratio(lu: Array) -> Scalar:
     pivots = jnp.abs(jnp.diagonal(lu))
-    return jnp.min(pivots) / jnp.max(pivots)
+    return _ratio(jnp.min(pivots), jnp.max(pivots))
 
 
 def unrolled_lu_factor(matrix: Array) -> tuple[Array, Array]:
@@ -154,7 +161,7 @@ def cofactor_solve3(matrix: Array, b: Array) -> tuple[Array, Scalar]:
     det = jnp.sum(a0 * c0)
     x = (c0 * b[0] + c1 * b[1] + c2 * b[2]) / det
     largest = jnp.max(jnp.stack([jnp.sum(a**2) for a in (a0, a1, a2)]))
-    return x, jnp.abs(det) / largest**1.5
+    return x, _ratio(jnp.abs(det), largest**1.5)
 
 
 def _magnitude(tree: PyTree) -> Scalar:
