@@ -136,6 +136,59 @@ def test_masses_far_apart_are_regular_in_float32():
         assert np.allclose(sol.ys[0][-1], -y0[0], atol=1e-4), masses
 
 
+class _InUnits(dvi.AbstractLagrangian):
+    """`inner` with each coordinate measured in its own unit `c` (an array field:
+    one compiled program for every choice of units)."""
+
+    inner: dvi.AbstractLagrangian
+    c: jax.Array
+
+    def __call__(self, t, q, v, args):
+        return self.inner(t, self.c * q, self.c * v, args)
+
+
+@pytest.mark.parametrize("dtype,unit", [(jnp.float64, 1e9), (jnp.float32, 1e4)])
+def test_a_coupled_mass_is_regular_in_any_units(dtype, unit):
+    """The double pendulum with its second angle in a unit `1/unit` of a radian:
+    d2L/dv2 = C M C, whose eigenvalues are `unit**2` apart (1e18 in float64, 1e8
+    in float32, beyond `n eps`) although the motion is the same. The start check
+    judges the matrix in units of its diagonal, so the solve runs, and its states,
+    converted back, are those of the solve in radians."""
+    scene = dvi.scenes.double_pendulum()
+    cast = lambda x: jnp.asarray(x, dtype)
+    q0, p0 = cast(scene.y0[0]), cast(scene.y0[1] + jnp.array([0.3, -0.2]))
+    states = []
+    for c in (jnp.ones(2, dtype), jnp.array([1.0, unit], dtype)):
+        lagrangian = _InUnits(scene.lagrangian, c)
+        y0 = (q0 / c, p0 * c)
+        sol = _solve(lagrangian, dvi.MidpointVI(), y0, t1=cast(1.0), dt=cast(0.05))
+        states.append(np.concatenate([sol.ys[0][-1] * c, sol.ys[1][-1] / c]))
+    assert np.max(np.abs(states[1] - states[0])) < 100 * jnp.finfo(dtype).eps
+
+
+def test_the_start_checks_spectrum_does_not_see_the_units():
+    """`symmetric_extremes` (dense): a positive definite matrix and the same in
+    other units of each coordinate, `C A C` with `C` alternating 1e-6 and 1e6 (its
+    eigenvalues 1e24 apart), give the same extremes; a singular one stays singular
+    in either units."""
+    from diffrax_vi._spectrum import symmetric_extremes
+
+    n = 5
+    i = jnp.arange(n, dtype=float)
+    off = 0.3 * jnp.cos(i[:-1])
+    a = jnp.diag(2.0 + jnp.sin(i)) + jnp.diag(off, 1) + jnp.diag(off, -1)
+    c = jnp.where(i % 2 == 0, 1e-6, 1e6)
+    u = jnp.cos(1.3 * i) / jnp.linalg.norm(jnp.cos(1.3 * i))
+    projector = jnp.eye(n) - jnp.outer(u, u)
+    for matrix, regular in [(a, True), (projector @ a @ projector, False)]:
+        natural = symmetric_extremes(lambda x: matrix @ x, n, float)
+        scaled = symmetric_extremes(lambda x: c * (matrix @ (c * x)), n, float)
+        np.testing.assert_allclose(scaled, natural, rtol=1e-12, atol=1e-14)
+        smallest, largest, least = (float(x) for x in scaled)
+        assert (least > n * 2.2e-16 * max(-smallest, largest)) == regular
+        assert (smallest > 0) == regular
+
+
 def test_linearized_guard_is_unit_free():
     """Centered LinearizedVI on Kepler (e = 0.6, 200 steps per period) follows a
     parasitic mode and explodes: unguarded it reports success; guarded it fails near
