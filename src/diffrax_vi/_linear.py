@@ -42,8 +42,12 @@ def _ratio(small: Scalar, large: Scalar) -> Scalar:
 
 
 def pivot_ratio(lu: Array) -> Scalar:
+    """The smallest over the largest pivot; 0 where a pivot is zero (a column
+    with nothing left to pivot on: the elimination then divides 0 by 0 below it,
+    and the NaN it leaves in later pivots must not read as regular)."""
     pivots = jnp.abs(jnp.diagonal(lu))
-    return _ratio(jnp.min(pivots), jnp.max(pivots))
+    ratio = _ratio(jnp.min(pivots), jnp.max(pivots))
+    return jnp.where(jnp.any(pivots == 0), jnp.zeros_like(ratio), ratio)
 
 
 def unrolled_lu_factor(matrix: Array) -> tuple[Array, Array]:
