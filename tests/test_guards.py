@@ -166,6 +166,44 @@ def test_a_coupled_mass_is_regular_in_any_units(dtype, unit):
     assert np.max(np.abs(states[1] - states[0])) < 100 * jnp.finfo(dtype).eps
 
 
+class _ConstraintInUnits(eqx.Module):
+    """`inner(t, c q)` with each value in its own unit `k`."""
+
+    inner: eqx.Module
+    c: jax.Array
+    k: jax.Array
+
+    def __call__(self, t, q, args):
+        return self.k * self.inner(t, self.c * q, args)
+
+
+def test_a_mechanism_runs_in_any_units_in_float32():
+    """The four-bar in float32 with its coupler's angle in centiradians and one
+    closure constraint in units 1e8 times smaller than the other: the same motion.
+    Each coordinate's unit scales a row and a column of d2L/dv2 and of the Newton
+    matrices, each constraint's a row of dg/dq; the singular tests (the Legendre
+    map's 3 x 3 solve, the constraints' rank) judge them in their own units, so the
+    solve runs and its states, converted back, are those of the solve in radians.
+    (Judged as given, both fell below n eps of float32: singular and redundant.)"""
+    scene = dvi.scenes.four_bar()
+    f32 = lambda tree: jax.tree.map(
+        lambda x: jnp.asarray(x, jnp.float32) if eqx.is_inexact_array(x) else x, tree
+    )
+    lagrangian, closure = f32(scene.lagrangian), f32(scene.constraint)
+    q0, p0 = f32(scene.y0)
+    h = jnp.float32(scene.period / 50)
+    states = []
+    for c, k in [([1.0, 1.0, 1.0], [1.0, 1.0]), ([1.0, 100.0, 1.0], [1.0, 1e8])]:
+        c, k = jnp.asarray(c, jnp.float32), jnp.asarray(k, jnp.float32)
+        term = dvi.LagrangianTerm(
+            _InUnits(lagrangian, c), constraint=_ConstraintInUnits(closure, c, k)
+        )
+        y0 = (q0 / c, p0 * c)
+        sol = _solve(term, dvi.MidpointVI(), y0, t1=10 * h, dt=h)
+        states.append(np.concatenate([sol.ys[0][-1] * c, sol.ys[1][-1] / c]))
+    assert np.max(np.abs(states[1] - states[0])) < 1e-5
+
+
 def test_the_start_checks_spectrum_does_not_see_the_units():
     """`symmetric_extremes` (dense): a positive definite matrix and the same in
     other units of each coordinate, `C A C` with `C` alternating 1e-6 and 1e6 (its

@@ -156,16 +156,23 @@ def dense_lu_solve(matrix: Array, b: Array, unrolled_max: int) -> tuple[Array, S
 
 def cofactor_solve3(matrix: Array, b: Array) -> tuple[Array, Scalar]:
     r"""`matrix^-1 b` for a 3 x 3 matrix by its cofactors (cross products of its
-    rows: $A^{-1} = \mathrm{cof}(A)^\top/\det A$), and $|\det A| / \max_i
-    |a_i|^3$ in place of the pivot ratio: a unit-free measure that is at most one and
-    vanishes with $\det A$, below which $A$ is singular to working precision as the
-    pivot ratio says of an elimination."""
+    rows: $A^{-1} = \mathrm{cof}(A)^\top/\det A$), and, in place of the pivot
+    ratio, $|\det A'| / \max_i |a'_i|^3$ for $A' = DAD$ in units of the diagonal,
+    $D = |\mathrm{diag}\,A|^{-1/2}$ (a zero entry unscaled): a measure that is at most
+    one and vanishes with $\det A$, below which $A$ is singular to working precision
+    as the pivot ratio says of an elimination. The Jacobians solved here (of
+    momenta in velocities: $d^2L/dv^2$, a step's Newton matrix) scale a row and a
+    column with the units of each coordinate, which $D$ takes out: the same measure
+    in any units (of $A$ itself, a four-bar with one angle in units $10^4$ times
+    smaller read $10^{-17}$ and singular)."""
     a0, a1, a2 = matrix[0], matrix[1], matrix[2]
     c0, c1, c2 = jnp.cross(a1, a2), jnp.cross(a2, a0), jnp.cross(a0, a1)
     det = jnp.sum(a0 * c0)
     x = (c0 * b[0] + c1 * b[1] + c2 * b[2]) / det
-    largest = jnp.max(jnp.stack([jnp.sum(a**2) for a in (a0, a1, a2)]))
-    return x, _ratio(jnp.abs(det), largest**1.5)
+    diagonal = jnp.abs(jnp.diagonal(matrix))
+    scale = 1 / jnp.where(diagonal > 0, diagonal, 1)  # D^2
+    largest = jnp.max(scale * jnp.sum(matrix**2 * scale[None, :], axis=1))
+    return x, _ratio(jnp.abs(det) * jnp.prod(scale), largest**1.5)
 
 
 def _magnitude(tree: PyTree) -> Scalar:
