@@ -43,25 +43,28 @@ def lanczos_extremes(
 
 
 def symmetric_extremes(matvec: Callable[[Array], Array], n: int, dtype):
-    """The smallest and largest eigenvalues of a symmetric operator `A` on `R^n`,
-    and the smallest in magnitude: exact from the dense matrix up to `DENSE_MAX`,
-    else Lanczos estimates (the smallest magnitude then only among the extreme
-    ones).
+    """The smallest and largest eigenvalues of a symmetric operator `A` on `R^n`
+    in units of its diagonal, and the smallest in magnitude: exact from the dense
+    matrix up to `DENSE_MAX`, else Lanczos estimates (the smallest magnitude then
+    only among the extreme ones).
 
-    The dense matrix is taken in units of its diagonal, `D A D` with
-    `D = |diag A|^(-1/2)` (a zero entry unscaled): its entries are pure numbers, the
-    same in any units of each coordinate (which scale a row and a column of `A`),
-    and, a congruence, its eigenvalues have the signs of `A`'s. The Lanczos
-    estimates are of `A` as given: a diagonal estimated from products (`z * A z`)
-    can be wrong by the ratio of two coordinates' units, where they are coupled."""
+    In units of its diagonal: of `D A D` with `D = |diag A|^(-1/2)` (a zero entry
+    unscaled), whose entries are pure numbers, the same in any units of each
+    coordinate (which scale a row and a column of `A`); a congruence, so its
+    eigenvalues have the signs of `A`'s. Beyond `DENSE_MAX` the diagonal takes one
+    product per coordinate, in a loop (a product with `z = (1, -1, 1, ...)`
+    estimates it in one, but is wrong by the ratio of two coordinates' units where
+    they are coupled)."""
     if n <= DENSE_MAX:
         matrix = jax.vmap(matvec)(jnp.eye(n, dtype=dtype))
-        diagonal = jnp.abs(jnp.diagonal(matrix))
-        scale = 1 / jnp.sqrt(jnp.where(diagonal > 0, diagonal, 1))
+        scale = _unit_scale(jnp.diagonal(matrix))
         matrix = scale[:, None] * matrix * scale[None, :]
         eigs = jnp.linalg.eigvalsh(0.5 * (matrix + matrix.T))
         return eigs[0], eigs[-1], jnp.min(jnp.abs(eigs))
-    smallest, largest = lanczos_extremes(matvec, n, dtype)
+    rows = jnp.arange(n)
+    diagonal = lax.map(lambda i: matvec((rows == i).astype(dtype))[i], rows)
+    scale = _unit_scale(diagonal)
+    smallest, largest = lanczos_extremes(lambda u: scale * matvec(scale * u), n, dtype)
     size = jnp.maximum(jnp.abs(smallest), jnp.abs(largest))
     # An indefinite operator's smallest magnitude is inside the spectrum, which
     # Lanczos does not resolve: not judged singular.
@@ -71,3 +74,9 @@ def symmetric_extremes(matvec: Callable[[Array], Array], n: int, dtype):
         size,
     )
     return smallest, largest, least
+
+
+def _unit_scale(diagonal: Array) -> Array:
+    """`|d|^(-1/2)`, or 1 where `d = 0`."""
+    size = jnp.abs(diagonal)
+    return 1 / jnp.sqrt(jnp.where(size > 0, size, 1))
