@@ -161,26 +161,21 @@ def hidden_constraint(jacobian: Array, v: PyTree, rate: Array) -> tuple[Array, A
     )
 
 
-# Rounds of row and column scaling in `rank_ok`.
-_BALANCING_ROUNDS = 3
-
-
 def rank_ok(jacobian: Array) -> Array:
     """Whether $G$ has full row rank to working precision (its singular values),
-    judged in units of its own entries: each constraint's row and each coordinate's
-    column scaled to a largest entry of one, in alternation (`_BALANCING_ROUNDS`
-    times; a zero row or column is left as it is). Units of a constraint or of a
-    coordinate scale a row or a column of $G$, and no scaling changes its rank; the
-    ratio of its singular values changes with them (a closure constraint in units
-    1e8 times smaller than the other made the four-bar's constraints look
-    redundant in float32)."""
+    each constraint's row scaled to a largest entry of one (a zero row left as it
+    is): a constraint's unit scales its row, which changes the ratio of the
+    singular values but not the rank (a closure constraint in units 1e8 times
+    smaller than the other made the four-bar's constraints look redundant in
+    float32). Coordinates' units scale columns and move the ratio by at most their
+    own ratio; scaling the columns too cost the four-bar's first call 0.1-0.2 s of
+    compilation (a few operations on a 2 x 3 matrix before LAPACK's SVD), so they
+    are left as they are."""
     m, n = jacobian.shape
     if m > n:
         return jnp.array(False)
-    for _ in range(_BALANCING_ROUNDS):
-        for axis in (1, 0):
-            largest = jnp.max(jnp.abs(jacobian), axis=axis, keepdims=True)
-            jacobian = jacobian / jnp.where(largest > 0, largest, 1)
+    largest = jnp.max(jnp.abs(jacobian), axis=1, keepdims=True)
+    jacobian = jacobian / jnp.where(largest > 0, largest, 1)
     # Of the transpose: with XLA on CPU (jax 0.10.2), `svd(G)` in a program that
     # also multiplies G by the velocity returned that product with another
     # column of G (a hinge's start refused as off its constraint;
