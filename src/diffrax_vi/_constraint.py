@@ -44,6 +44,7 @@ from ._lagrangian import (
 from ._linear import (
     pivot_ratio,
     product,
+    unit_scale,
     unrolled_lu_apply,
     unrolled_lu_factor,
     unrolled_lu_solve,
@@ -271,8 +272,7 @@ def _reduced_solve(
     $10^4$ times smaller was judged unsolvable in float32 under Tsit5."""
     if b.shape[0] == 1:  # Its ratio is 1 (or 0) in any units; no scaling.
         return solve(matrix, b)
-    diagonal = jnp.abs(jnp.diagonal(matrix))
-    scale = 1 / jnp.sqrt(jnp.where(diagonal > 0, diagonal, 1))
+    scale = unit_scale(jnp.diagonal(matrix))
     y, ratio = solve(scale[:, None] * matrix * scale[None, :], scale * b)
     return scale * y, ratio
 

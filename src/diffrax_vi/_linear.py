@@ -41,6 +41,14 @@ def _ratio(small: Scalar, large: Scalar) -> Scalar:
     return jnp.where(large == 0, jnp.zeros_like(large), small / large)
 
 
+def unit_scale(diagonal: Array) -> Array:
+    """`|d|^(-1/2)` for the diagonal `d` of a matrix whose rows and columns carry
+    the units of the same coordinates (or constraints), 1 where `d = 0`: `D A D`
+    with `D = diag` of it has pure numbers for entries, the same in any units."""
+    size = jnp.abs(diagonal)
+    return 1 / jnp.sqrt(jnp.where(size > 0, size, 1))
+
+
 def pivot_ratio(lu: Array) -> Scalar:
     """The smallest over the largest pivot; 0 where a pivot is zero (a column
     with nothing left to pivot on: the elimination then divides 0 by 0 below it,

@@ -8,6 +8,7 @@ import jax.lax as lax
 import jax.numpy as jnp
 from jaxtyping import Array, Scalar
 
+from ._linear import unit_scale
 from ._tolerance import DENSE_MAX, LANCZOS_STEPS
 
 
@@ -57,13 +58,13 @@ def symmetric_extremes(matvec: Callable[[Array], Array], n: int, dtype):
     they are coupled)."""
     if n <= DENSE_MAX:
         matrix = jax.vmap(matvec)(jnp.eye(n, dtype=dtype))
-        scale = _unit_scale(jnp.diagonal(matrix))
+        scale = unit_scale(jnp.diagonal(matrix))
         matrix = scale[:, None] * matrix * scale[None, :]
         eigs = jnp.linalg.eigvalsh(0.5 * (matrix + matrix.T))
         return eigs[0], eigs[-1], jnp.min(jnp.abs(eigs))
     rows = jnp.arange(n)
     diagonal = lax.map(lambda i: matvec((rows == i).astype(dtype))[i], rows)
-    scale = _unit_scale(diagonal)
+    scale = unit_scale(diagonal)
     smallest, largest = lanczos_extremes(lambda u: scale * matvec(scale * u), n, dtype)
     size = jnp.maximum(jnp.abs(smallest), jnp.abs(largest))
     # An indefinite operator's smallest magnitude is inside the spectrum, which
@@ -74,9 +75,3 @@ def symmetric_extremes(matvec: Callable[[Array], Array], n: int, dtype):
         size,
     )
     return smallest, largest, least
-
-
-def _unit_scale(diagonal: Array) -> Array:
-    """`|d|^(-1/2)`, or 1 where `d = 0`."""
-    size = jnp.abs(diagonal)
-    return 1 / jnp.sqrt(jnp.where(size > 0, size, 1))
