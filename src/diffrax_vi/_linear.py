@@ -37,7 +37,8 @@ def product(a: Array, b: Array) -> Array:
 def _ratio(small: Scalar, large: Scalar) -> Scalar:
     """`small / large` for `0 <= small <= large`, and 0 for a zero matrix (0/0
     would be NaN, which a test `ratio <= threshold` reads as regular); NaN stays NaN
-    (a NaN Lagrangian is not a singular one)."""
+    (a NaN Lagrangian is not a singular one). (`pivot_ratio` tests its pivots for
+    zeros, which covers the zero matrix.)"""
     return jnp.where(large == 0, jnp.zeros_like(large), small / large)
 
 
@@ -54,7 +55,7 @@ def pivot_ratio(lu: Array) -> Scalar:
     with nothing left to pivot on: the elimination then divides 0 by 0 below it,
     and the NaN it leaves in later pivots must not read as regular)."""
     pivots = jnp.abs(jnp.diagonal(lu))
-    ratio = _ratio(jnp.min(pivots), jnp.max(pivots))
+    ratio = jnp.min(pivots) / jnp.max(pivots)
     return jnp.where(jnp.any(pivots == 0), jnp.zeros_like(ratio), ratio)
 
 
