@@ -137,19 +137,23 @@ def test_fixed_step_programs_hold_no_host_callback(solver):
     """JAX's persistent compilation cache stores no program that holds a host
     callback. solve_fixed_steps knows its times when traced, so the start's check of
     them is made then, and a variational solve of a vector-space Lagrangian holds
-    none: a repeated run reads it from the cache. diffeqsolve traces its times, and
-    checks them at run time; both raise for NaN times."""
+    none: a repeated run reads it from the cache. So does diffeqsolve from Python
+    floats, which it computes its first times from (`known_value`); from arrays it
+    checks them at run time. All raise for NaN times."""
     terms = dvi.terms_for(solver, SCENE.lagrangian)
 
     def text(solve):
         return jax.jit(solve).lower(SCENE.y0).as_text()
 
+    def general(*times):
+        return text(
+            lambda y0: dfx.diffeqsolve(terms, solver, *times, y0, throw=False).ys
+        )
+
     fixed = text(lambda y0: dvi.solve_fixed_steps(terms, solver, 0.0, 1.0, 0.1, y0))
-    general = text(
-        lambda y0: dfx.diffeqsolve(terms, solver, 0.0, 1.0, 0.1, y0, throw=False).ys
-    )
     assert "callback" not in fixed
-    assert "callback" in general
+    assert "callback" not in general(0.0, 1.0, 0.1)
+    assert "callback" in general(*map(jnp.asarray, (0.0, 1.0, 0.1)))
     # The trace-time check itself, on a first step whose end is NaN.
     with pytest.raises(ValueError, match="NaN or infinite"):
         solver.init(terms, jnp.asarray(0.0), jnp.asarray(jnp.nan), SCENE.y0, None)

@@ -24,6 +24,7 @@ from diffrax_vi._private_api import (
     backends_are_initialized,
     clip_to_end,
     is_subsaveat,
+    known_value,
     NoForwardingSolverMeta,
     nondiff_solver_controller_state,
     only_transpose_ys,
@@ -302,6 +303,20 @@ def test_private_api_assumptions():
     assert isinstance(wrapped, WrapTerm) and isinstance(wrapped.term, dfx.ODETerm)
     # (Its fields are traced inside diffeqsolve: compare what the term is.)
     assert type(wrapped.term.vector_field) is type(pair[0].vector_field)
+    # known_value: diffeqsolve computes a solve's first times from Python floats by
+    # operations on constants, which it evaluates; from a traced argument it cannot.
+    times = []
+
+    class Times(dvi.StormerVerlet):
+        def init(self, terms, t0, t1, y0, args):
+            times.append((known_value(t0), known_value(t1)))
+            return super().init(terms, t0, t1, y0, args)
+
+    y0 = (jnp.array(0.0), jnp.array(1.0))
+    solve = lambda t1: dfx.diffeqsolve(pair, Times(), 0.0, t1, 0.25, y0).ys
+    jax.jit(lambda: solve(1.0)).lower()
+    jax.jit(solve).lower(1.0)
+    assert times[0] == (0.0, 0.25) and times[1][1] is None
     # `direction` is the sign of t1 - t0, and the control is signed with it.
     direct = WrapTerm(pair[0], -1)
     assert direct.direction == -1 and float(direct.contr(-1.0, -0.5)) == -0.5

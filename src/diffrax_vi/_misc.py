@@ -146,7 +146,7 @@ def at_trace_time(fn, *xs):
         return fn(*xs)
 
 
-def error_if(x: PyTree, failed: Bool[Array, ""], message: str) -> PyTree:
+def error_if(x: PyTree, failed: bool | Bool[Array, ""], message: str) -> PyTree:
     """`x`, or an error if `failed`: a `ValueError` now where `failed` is known when
     traced (computed from concrete values), else at run time (`eqx.error_if`, a host
     callback: XLA then no longer compiles a loop around it as one function, and JAX's

@@ -8,6 +8,7 @@ inside a solve.
 
 import diffrax as dfx
 import equinox.internal as eqxi
+import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
@@ -35,6 +36,10 @@ from equinox._enum import EnumerationItem  # An enumeration's item from its valu
 from jax._src.compilation_cache import (  # The persistent cache, set up once.
     reset_cache as reset_compilation_cache,
 )
+from jax._src.core import Literal  # A constant operand of a traced equation.
+from jax._src.interpreters.partial_eval import (  # A value being traced into a jaxpr.
+    DynamicJaxprTracer,
+)
 from jax._src.xla_bridge import backends_are_initialized  # XLA_FLAGS are read then.
 from jaxtyping import ArrayLike, Bool
 
@@ -45,6 +50,7 @@ __all__ = [
     "backends_are_initialized",
     "clip_to_end",
     "is_subsaveat",
+    "known_value",
     "nondiff_solver_controller_state",
     "promote_result",
     "reset_compilation_cache",
@@ -92,3 +98,82 @@ def promote_result(
     if not np.array_equal(offsets, np.arange(len(offsets))):
         value = jnp.asarray(offsets)[value]
     return EnumerationItem(value, cls)
+
+
+# The operations by which diffrax computes a solve's first times from Python floats
+# (`jnp.asarray`, the step's end `t0 + dt0`, `min(·, t1)`, the direction's sign),
+# evaluated in NumPy: JAX's own evaluation of them at trace time compiles one small
+# program per operation the first time a process meets it (13 ms of a first call).
+_NUMPY_RULES = {
+    "add": np.add,
+    "sub": np.subtract,
+    "mul": np.multiply,
+    "div": np.divide,
+    "neg": np.negative,
+    "min": np.minimum,
+    "max": np.maximum,
+    "lt": np.less,
+    "le": np.less_equal,
+    "gt": np.greater,
+    "ge": np.greater_equal,
+    "eq": np.equal,
+    "ne": np.not_equal,
+    "select_n": lambda which, *cases: np.asarray(cases)[np.asarray(which, int)],
+    "convert_element_type": lambda x: x,  # Cast to the output's dtype below.
+}
+
+
+def known_value(x, budget: int = 32) -> np.ndarray | None:
+    """The value of a traced scalar `x` where it is computed only from constants
+    (as `diffeqsolve` computes a solve's first times from Python floats: JAX stages
+    even `jnp.asarray(0.1)` as a traced value), by at most `budget` of the simple
+    operations above; else `None`. A value that is not traced is itself."""
+    if not isinstance(x, jax.core.Tracer):
+        return np.asarray(x)
+    try:
+        return _evaluate(x, [budget])
+    except _Unknown:
+        return None
+
+
+class _Unknown(Exception):
+    pass
+
+
+def _evaluate(x, budget: list[int]) -> np.ndarray:
+    if not isinstance(x, DynamicJaxprTracer) or x.shape != ():
+        raise _Unknown
+    value = x.get_const()
+    if value is not None:
+        return np.asarray(value)
+    eqn = x.parent
+    if eqn is None:
+        raise _Unknown
+    args = [_evaluate(t, budget) for t in eqn.in_tracers]
+    outs = _apply(eqn.primitive.name, eqn.params, args, budget)
+    return np.asarray(outs[eqn.outvars.index(x.val)], x.dtype)
+
+
+def _apply(name: str, params: dict, args: list, budget: list[int]) -> list:
+    """The outputs of one equation on NumPy scalars; a nested `jit` (`jnp.where`
+    is one) through its jaxpr."""
+    budget[0] -= 1
+    if budget[0] < 0:
+        raise _Unknown
+    if name in _NUMPY_RULES:
+        with np.errstate(all="ignore"):
+            return [_NUMPY_RULES[name](*args)]
+    if name != "jit":
+        raise _Unknown
+    closed = params["jaxpr"]
+    env = dict(zip(closed.jaxpr.constvars, map(np.asarray, closed.consts)))
+    env.update(zip(closed.jaxpr.invars, args))
+    read = lambda v: np.asarray(v.val) if isinstance(v, Literal) else env[v]
+    for inner in closed.jaxpr.eqns:
+        if any(v.aval.shape != () for v in inner.outvars):
+            raise _Unknown
+        args = [read(v) for v in inner.invars]
+        outs = _apply(inner.primitive.name, inner.params, args, budget)
+        for var, out in zip(inner.outvars, outs):
+            env[var] = np.asarray(out, var.aval.dtype)
+    return [read(v) for v in closed.jaxpr.outvars]

@@ -159,8 +159,9 @@ def solve_fixed_steps(
 
     The solver checks the times when they are traced, so the program of a
     variational solve in a vector space holds no host callback and JAX's persistent
-    compilation cache can store it (`diffeqsolve` traces its times and checks them
-    with one; a start on a group is checked with one in both).
+    compilation cache can store it (so does `diffeqsolve` from Python floats; from
+    arrays it checks them with one; a start on a group is checked with one in
+    both).
 
     **Arguments:**
 

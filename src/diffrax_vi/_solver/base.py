@@ -25,7 +25,13 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 from .._custom_types import Args, P, Q, RealScalarLike, V
 from .._lagrangian import momentum_offset
 from .._misc import all_finite, at_trace_time, error_if, split_state, state_dtype
-from .._private_api import AdjointTerm, NoForwardingSolverMeta, unvmap_any, WrapTerm
+from .._private_api import (
+    AdjointTerm,
+    known_value,
+    NoForwardingSolverMeta,
+    unvmap_any,
+    WrapTerm,
+)
 from .._space import departure, is_euclidean, retract, velocity
 from .._term import LagrangianTerm
 from .._tolerance import newton_tolerance
@@ -196,10 +202,17 @@ NON_FINITE_TIMES = (
 
 def check_times(t0: RealScalarLike, t1: RealScalarLike, state: PyTree) -> PyTree:
     """`state`, or an error if the first step is not finite: diffeqsolve then takes
-    no step at all and would report success. Times known when traced (as
-    `solve_fixed_steps` gives them) are checked then; traced ones at run time,
-    through the solver state (so that the check cannot be dropped as unused)."""
-    failed = at_trace_time(lambda a, b: ~jnp.isfinite(b - a), t0, t1)
+    no step at all and would report success. Times known when traced are checked
+    then: those `solve_fixed_steps` gives, and those `diffeqsolve` computes from
+    Python floats (`known_value`), so that the solve holds no host callback and
+    JAX's persistent cache can keep it. Others are checked at run time, through the
+    solver state (so that the check cannot be dropped as unused)."""
+    a, b = known_value(t0), known_value(t1)
+    if a is None or b is None:
+        failed = ~jnp.isfinite(t1 - t0)
+    else:
+        with np.errstate(all="ignore"):
+            failed = not np.isfinite(b - a)
     return error_if(state, failed, NON_FINITE_TIMES)
 
 

@@ -116,9 +116,10 @@ class _Solves(eqx.Module):
         t0, t1, dt0 = self.ts[0], self.ts[-1], self.dt0
         if self.fixed_times is not None and self.ts.dtype == jnp.result_type(float):
             # Fixed steps' times as a user writes them, Python floats: diffrax
-            # checks their order when traced, and a Runge-Kutta solve then holds no
-            # host callback, so JAX's persistent cache keeps it. (In float32 they
-            # stay arrays: floats would make diffrax's times float64.)
+            # checks their order when traced, and our solvers check that they are
+            # finite then (`known_value`), so the solve holds no host callback and
+            # JAX's persistent cache keeps it. (In float32 they stay arrays: floats
+            # would make diffrax's times float64.)
             t0, t1, dt0 = (float(x) for x in self.fixed_times)
         return dfx.diffeqsolve(
             self.terms,
