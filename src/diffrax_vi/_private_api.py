@@ -108,7 +108,6 @@ _NUMPY_RULES = {
     "add": np.add,
     "sub": np.subtract,
     "mul": np.multiply,
-    "div": np.divide,
     "neg": np.negative,
     "min": np.minimum,
     "max": np.maximum,
