@@ -2,6 +2,9 @@
 against scipy on Euler's equations with dR/dt = R hat(Omega) (torque written by hand,
 not by our derivatives)."""
 
+import math
+from fractions import Fraction
+
 import diffrax as dfx
 import diffrax_vi as dvi
 import equinox as eqx
@@ -337,6 +340,30 @@ def test_so3_pull_is_the_transposed_right_derivative_of_exp():
         x = jnp.asarray(rng.normal(size=3)) * scale
         w = jnp.asarray(rng.normal(size=3))
         assert jnp.max(jnp.abs(space.pull(x, w) - definition(x, w))) < 1e-14, scale
+
+
+def test_so3_exp_coefficients_derivatives_equal_their_exact_series():
+    """The derivatives of the exponential's coefficients c_m(s) = sum_k (-1)^k s^k /
+    (2k + m)! (m = 1, 2, 3; s = |x|^2), which a step's Newton matrix takes, against
+    their series summed exactly in rationals, across both thresholds (the values'
+    series below |x| = 1e-2, the derivatives' below 1/2)."""
+    from diffrax_vi._so3 import _exp_coefficients
+
+    rng = np.random.default_rng(2)
+    direction = rng.normal(size=3)
+    for scale in (1e-5, 9e-3, 1.01e-2, 2e-2, 0.1, 0.49, 0.51, 1.0, 3.0):
+        x = direction / np.linalg.norm(direction) * scale
+        dx = rng.normal(size=3)
+        _, tangents = jax.jvp(_exp_coefficients, (jnp.asarray(x),), (jnp.asarray(dx),))
+        s = sum(Fraction(float(v)) ** 2 for v in x)
+        ds = 2 * sum(Fraction(float(a)) * Fraction(float(b)) for a, b in zip(x, dx))
+        for m, tangent in zip((1, 2, 3), tangents):
+            slope = sum(
+                Fraction((-1) ** k * k, math.factorial(2 * k + m)) * s ** (k - 1)
+                for k in range(1, 40)
+            )
+            exact = float(slope * ds)
+            assert abs(float(tangent) - exact) <= 1e-12 * abs(exact), (scale, m)
 
 
 def test_so3_cross_products_equal_numpys():
