@@ -126,12 +126,16 @@ def known_value(x, budget: int = 32) -> np.ndarray | None:
     """The value of a traced scalar `x` where it is computed only from constants
     (as `diffeqsolve` computes a solve's first times from Python floats: JAX stages
     even `jnp.asarray(0.1)` as a traced value), by at most `budget` of the simple
-    operations above; else `None`. A value that is not traced is itself."""
+    operations above; else `None`. A value that is not traced is itself.
+
+    It reads JAX's tracers (`get_const`, `parent`): where a JAX release changes
+    them it gives `None`, and the callers check at run time as before
+    (`tests/test_surface.py` then fails)."""
     if not isinstance(x, jax.core.Tracer):
         return np.asarray(x)
     try:
         return _evaluate(x, [budget])
-    except _Unknown:
+    except (_Unknown, AttributeError, LookupError, TypeError, ValueError):
         return None
 
 
