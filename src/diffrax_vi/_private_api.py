@@ -175,8 +175,8 @@ def _apply(name: str, params: dict, args: list, budget: list[int]) -> list:
     for inner in closed.jaxpr.eqns:
         if any(v.aval.shape != () for v in inner.outvars):
             raise _Unknown
-        args = [read(v) for v in inner.invars]
-        outs = _apply(inner.primitive.name, inner.params, args, budget)
+        operands = [read(v) for v in inner.invars]
+        outs = _apply(inner.primitive.name, inner.params, operands, budget)
         for var, out in zip(inner.outvars, outs):
             env[var] = np.asarray(out, var.aval.dtype)
     return [read(v) for v in closed.jaxpr.outvars]
