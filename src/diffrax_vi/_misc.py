@@ -36,10 +36,11 @@ def all_finite(tree: PyTree) -> Bool[Array, ""]:
     each leaf in an integer sum. XLA on CPU hands a floating-point reduction of 4096
     or more elements (a large state, or a small one batched by `vmap`) to YNNPACK as
     a custom fusion, which breaks the loop around it into kernels dispatched one by
-    one (`diagnostics.loop_breakers`); it keeps an integer sum in the loop. Below
-    that size the count costs what a sum of the entries did (CHANGELOG)."""
+    one (`diagnostics.loop_breakers`); it keeps an integer sum in the loop. The sum
+    is of 32 bits, which x64 would otherwise make 64. Below that size the count
+    costs what a sum of the entries did (CHANGELOG)."""
     leaves = [
-        jnp.sum(jnp.isfinite(x).astype(jnp.int32)) == x.size
+        jnp.sum(jnp.isfinite(x), dtype=jnp.int32) == x.size
         for x in jtu.tree_leaves(tree)
     ]
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
