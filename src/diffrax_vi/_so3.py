@@ -6,7 +6,6 @@ from typing import Literal
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jaxlie
 from jaxtyping import Array, Float
 
 from ._space import AbstractSpace
@@ -183,6 +182,12 @@ def _exp_jvp(primals, tangents):
 
 
 def _log(F: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
+    # Imported where a difference of attitudes is first traced, not with the
+    # package: jaxlie imports jax_dataclasses, which imports flax where it is
+    # installed, and `import diffrax_vi` took 0.27 against 0.16 s with them
+    # (`benchmarks/startup.py`).
+    import jaxlie
+
     return jaxlie.SO3.from_matrix(F).log()
 
 
