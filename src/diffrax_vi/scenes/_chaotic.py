@@ -5,7 +5,7 @@ from jaxtyping import Array, Float
 
 from .._lagrangian import AbstractQuadraticLagrangian, AbstractSeparableLagrangian
 from ._one_dof import parameter
-from ._scene import GENERAL_SOLVERS, Scene
+from ._scene import entries, GENERAL_SOLVERS, Scene
 
 
 class DoublePendulumLagrangian(AbstractQuadraticLagrangian):
@@ -26,16 +26,14 @@ class DoublePendulumLagrangian(AbstractQuadraticLagrangian):
     g: Float[Array, ""] = parameter(1.0)
 
     def __call__(self, t, q, v, args):
+        # In whole vectors where the terms allow (see `scenes._scene.entries`).
+        (q1, q2), (v1, v2) = entries(q), entries(v)
         m12 = self.m1 + self.m2
-        kinetic = (
-            0.5 * m12 * self.l1**2 * v[0] ** 2
-            + 0.5 * self.m2 * self.l2**2 * v[1] ** 2
-            + self.m2 * self.l1 * self.l2 * v[0] * v[1] * jnp.cos(q[0] - q[1])
-        )
-        potential = -self.g * (
-            m12 * self.l1 * jnp.cos(q[0]) + self.m2 * self.l2 * jnp.cos(q[1])
-        )
-        return kinetic - potential
+        inertia = jnp.stack([m12 * self.l1**2, self.m2 * self.l2**2])
+        coupling = self.m2 * self.l1 * self.l2 * v1 * v2 * jnp.cos(q1 - q2)
+        moments = jnp.stack([m12 * self.l1, self.m2 * self.l2])
+        potential = -self.g * jnp.sum(moments * jnp.cos(q))
+        return 0.5 * jnp.sum(inertia * v**2) + coupling - potential
 
 
 class HenonHeilesLagrangian(AbstractSeparableLagrangian):

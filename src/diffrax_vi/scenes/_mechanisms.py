@@ -16,7 +16,7 @@ from .._lagrangian import (
     velocity,
 )
 from ._one_dof import DuffingLagrangian, parameter, PendulumLagrangian
-from ._scene import agm, check_count, check_positive, GENERAL_SOLVERS, Scene
+from ._scene import agm, check_count, check_positive, entries, GENERAL_SOLVERS, Scene
 
 
 class DampedDrive(eqx.Module):
@@ -115,23 +115,13 @@ class FourBarLagrangian(AbstractQuadraticLagrangian):
 
     def __call__(self, t, q, v, args):
         l1, l2, l3, m1, m2, m3 = self.l1, self.l2, self.l3, self.m1, self.m2, self.m3
-        coupler = (
-            l1**2 * v[0] ** 2
-            + 0.25 * l2**2 * v[1] ** 2
-            + l1 * l2 * v[0] * v[1] * jnp.cos(q[0] - q[1])
-        )
-        kinetic = 0.5 * (
-            m1 * l1**2 / 3 * v[0] ** 2
-            + m2 * coupler
-            + m2 * l2**2 / 12 * v[1] ** 2
-            + m3 * l3**2 / 3 * v[2] ** 2
-        )
-        heights = (
-            m1 * 0.5 * l1 * jnp.sin(q[0])
-            + m2 * (l1 * jnp.sin(q[0]) + 0.5 * l2 * jnp.sin(q[1]))
-            + m3 * 0.5 * l3 * jnp.sin(q[2])
-        )
-        return kinetic - self.g * heights
+        # In whole vectors where the terms allow (see `entries`).
+        (q1, q2, _), (v1, v2, _) = entries(q), entries(v)
+        inertia = jnp.stack([(m1 / 3 + m2) * l1**2, m2 * l2**2 / 3, m3 * l3**2 / 3])
+        coupling = m2 * l1 * l2 * v1 * v2 * jnp.cos(q1 - q2)
+        kinetic = 0.5 * (jnp.sum(inertia * v**2) + coupling)
+        moments = jnp.stack([(m1 / 2 + m2) * l1, m2 * l2 / 2, m3 * l3 / 2])
+        return kinetic - self.g * jnp.sum(moments * jnp.sin(q))
 
 
 class LoopClosure(eqx.Module):
@@ -145,14 +135,9 @@ class LoopClosure(eqx.Module):
     l3: Float[Array, ""] = parameter(1.0)
 
     def __call__(self, t, q, args):
-        x = (
-            self.l1 * jnp.cos(q[0])
-            + self.l2 * jnp.cos(q[1])
-            - self.l3 * jnp.cos(q[2])
-            - self.l0
-        )
-        y = self.l1 * jnp.sin(q[0]) + self.l2 * jnp.sin(q[1]) - self.l3 * jnp.sin(q[2])
-        return jnp.stack([x, y])
+        arms = jnp.stack([self.l1, self.l2, -self.l3])
+        x = jnp.sum(arms * jnp.cos(q)) - self.l0
+        return jnp.stack([x, jnp.sum(arms * jnp.sin(q))])
 
 
 def four_bar(crank_speed: float = 3.0) -> Scene:
