@@ -507,6 +507,44 @@ def test_a_gradient_traces_each_kind_of_step_once():
     assert len(calls) == 3
 
 
+def test_backward_steps_leave_out_the_dense_output_nothing_interpolates():
+    """The backward pass's steps trace the vector field at their ends (their dense
+    output) only where `SaveAt(ts=...)` interpolates it: JAX differentiated it
+    before XLA removed it (the first calls are in `benchmarks/first_call.py`). The
+    forward solve keeps it: diffrax decides what it interpolates."""
+    calls = []
+
+    class Counted(dvi.MidpointVI):
+        def _fractional_step(self, *args):
+            calls.append(args[-1])  # `dense`
+            return super()._fractional_step(*args)
+
+    def traced(saveat):
+        jax.clear_caches()  # Each kind of step traced afresh.
+        calls.clear()
+
+        def loss(y0):
+            sol = dfx.diffeqsolve(
+                dvi.LagrangianTerm(KEPLER),
+                Counted(),
+                0.0,
+                1.0,
+                H,
+                y0,
+                1.0,
+                saveat=saveat,
+                adjoint=dvi.ReversibleAdjoint(),
+            )
+            return jnp.sum(sol.ys[0])
+
+        jax.jit(jax.grad(loss)).trace(KEPLER_Y0)
+        return sorted(calls)
+
+    # The forward solve's, the inverse step's and the repeated forward step's.
+    assert traced(dfx.SaveAt(t1=True)) == [False, False, True]
+    assert traced(dfx.SaveAt(ts=jnp.linspace(0.0, 1.0, 5))) == [False, True, True]
+
+
 def _final_gradient(scene, solver, adjoint, forced):
     """d/dy0 of a scalar of the scene's final state after 60 steps, with a force of
     time and position where `forced`."""

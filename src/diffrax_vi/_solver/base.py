@@ -89,10 +89,14 @@ class AbstractComposableSolver(dfx.AbstractSolver, **_markers):
         solver_state: PyTree,
         made_jump: bool | Bool[ArrayLike, ""],
         substep: Substep,
-    ) -> tuple[PyTree, None, dict[str, PyTree], PyTree, dfx.RESULTS]:
+        dense: bool = True,
+    ) -> tuple[PyTree, None, dict[str, PyTree] | None, PyTree, dfx.RESULTS]:
         """A step from `t0` to `t1` whose size is `substep.fraction` times the control
         of the whole step from `substep.t0` to `substep.t1`. Returns what `step`
-        returns; `step` is the fractional step with `Substep(1.0, t0, t1)`."""
+        returns; `step` is the fractional step with `Substep(1.0, t0, t1)`. With
+        `dense=False` the dense output data is `None`, not traced: for a caller that
+        discards it (a composition's substeps, `ReversibleAdjoint`'s backward steps),
+        whose derivatives JAX would otherwise take before XLA removed them."""
 
 
 def step_control(term: dfx.AbstractTerm, substep: Substep) -> PyTree:
@@ -467,9 +471,19 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         solver_state: VIState,
         made_jump: bool | Bool[ArrayLike, ""],
         substep: Substep,
-    ) -> tuple[PyTree, None, dict[str, PyTree], VIState, dfx.RESULTS]:
+        dense: bool = True,
+    ) -> tuple[PyTree, None, dict[str, PyTree] | None, VIState, dfx.RESULTS]:
         return _traced_once(
-            terms, t0, t1, y0, args, solver_state, made_jump, substep, solver=self
+            terms,
+            t0,
+            t1,
+            y0,
+            args,
+            solver_state,
+            made_jump,
+            substep,
+            solver=self,
+            dense=dense,
         )
 
     def _fractional_step(
@@ -482,7 +496,8 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         solver_state: VIState,
         made_jump: bool | Bool[ArrayLike, ""],
         substep: Substep,
-    ) -> tuple[PyTree, None, dict[str, PyTree], VIState, dfx.RESULTS]:
+        dense: bool = True,
+    ) -> tuple[PyTree, None, dict[str, PyTree] | None, VIState, dfx.RESULTS]:
         compensation = solver_state.compensation
         step = step_inputs(
             terms, t0, t1, y0, args, compensation, substep, type(self).__name__
@@ -496,7 +511,7 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
             dq, dp, q1 = unless_failed(out.result, (out.dq, out.dp, out.q1))
             y1, compensation = advance(space, y0, (dq, dp), compensation, q1)
         result = step_result(out.result, y1)
-        dense_info = hermite_dense_info(step, y0, y1, out.v)
+        dense_info = hermite_dense_info(step, y0, y1, out.v) if dense else None
         work = solver_state.work
         if work is not None:
             work = work + out.work
@@ -526,7 +541,9 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
 # the trace of a nested jit for the same abstract inputs, and XLA inlines it, so the
 # compiled loop is the same (tracing MidpointVI on four_bar: 6.9 -> 2.2 s).
 @eqx.filter_jit
-def _traced_once(terms, t0, t1, y0, args, solver_state, made_jump, substep, solver):
+def _traced_once(
+    terms, t0, t1, y0, args, solver_state, made_jump, substep, solver, dense
+):
     return solver._fractional_step(
-        terms, t0, t1, y0, args, solver_state, made_jump, substep
+        terms, t0, t1, y0, args, solver_state, made_jump, substep, dense
     )

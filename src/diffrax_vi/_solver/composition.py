@@ -350,6 +350,7 @@ class Composition(AbstractSymplecticSolver, AbstractComposableSolver):
         solver_state: PyTree,
         made_jump: bool | Bool[ArrayLike, ""],
         substep: Substep,
+        dense: bool = True,
     ):
         gammas = self.scheme.coefficients
         ends = np.cumsum(gammas)
@@ -379,6 +380,7 @@ class Composition(AbstractSymplecticSolver, AbstractComposableSolver):
                 # Kept static where diffrax knows there is no jump (`after_jump`).
                 made_jump if made_jump is False else jnp.logical_and(made_jump, k == 0),
                 Substep(substep.fraction * gamma, substep.t0, substep.t1),
+                dense=False,
             )
             result = dfx.RESULTS.where(
                 result == dfx.RESULTS.successful, sub_result, result
@@ -405,6 +407,8 @@ class Composition(AbstractSymplecticSolver, AbstractComposableSolver):
             and not has_loop(jax.make_jaxpr(substep_k)(init, first).jaxpr)
         )
         (y, state, result), _ = lax.scan(substep_k, init, xs, unroll=unroll)
+        if not dense:
+            return y, None, None, state, result
         f0 = self.base.func(terms, t0, y0, args)
         f1 = self.base.func(terms, t1, y, args)
         dense_info = dict(

@@ -150,8 +150,9 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractComposableSolver):
         solver_state: VerletState,
         made_jump: bool | Bool[ArrayLike, ""],
         substep: Substep,
+        dense: bool = True,
     ) -> tuple[
-        tuple[PyTree, PyTree], None, dict[str, PyTree], VerletState, dfx.RESULTS
+        tuple[PyTree, PyTree], None, dict[str, PyTree] | None, VerletState, dfx.RESULTS
     ]:
         term_q, term_p = terms
         q0, p0 = y0
@@ -184,18 +185,20 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractComposableSolver):
         result = dfx.RESULTS.where(
             all_finite(p1), dfx.RESULTS.successful, dfx.RESULTS.nonfinite
         )
-        dense_info = dict(
-            y0=y0,
-            y1=y1,
-            k0=(
-                term_q.vf_prod(t0, p0, args, control_q),
-                term_p.prod(force0, control_p),
-            ),
-            k1=(
-                term_q.vf_prod(t1, p1, args, control_q),
-                term_p.prod(force1, control_p),
-            ),
-        )
+        dense_info = None
+        if dense:
+            dense_info = dict(
+                y0=y0,
+                y1=y1,
+                k0=(
+                    term_q.vf_prod(t0, p0, args, control_q),
+                    term_p.prod(force0, control_p),
+                ),
+                k1=(
+                    term_q.vf_prod(t1, p1, args, control_q),
+                    term_p.prod(force1, control_p),
+                ),
+            )
         return y1, None, dense_info, VerletState(force1, compensation), result
 
     def func(
