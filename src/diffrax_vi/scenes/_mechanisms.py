@@ -115,7 +115,7 @@ class FourBarLagrangian(AbstractQuadraticLagrangian):
 
     def __call__(self, t, q, v, args):
         l1, l2, l3, m1, m2, m3 = self.l1, self.l2, self.l3, self.m1, self.m2, self.m3
-        # In whole vectors where the terms allow (see `entries`).
+        # In whole vectors where the terms allow (see `scenes._scene.entries`).
         (q1, q2, _), (v1, v2, _) = entries(q), entries(v)
         inertia = jnp.stack([(m1 / 3 + m2) * l1**2, m2 * l2**2 / 3, m3 * l3**2 / 3])
         coupling = m2 * l1 * l2 * v1 * v2 * jnp.cos(q1 - q2)
