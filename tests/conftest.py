@@ -160,6 +160,10 @@ SLOW = (
         f"test_compiled_loops.py::test_no_loop_is_broken_into_kernels[rigid_chain-{s}]"
         for s in ("MidpointVI", "TrapezoidalVI", "Tsit5")
     ),
+    # Joined bodies converge at second order under MidpointVI and TrapezoidalVI by
+    # default; a composition is the same code at every order, and its fourth order
+    # on the groups runs in test_lie.py.
+    "test_joints.py::test_rigid_double_pendulum_converges_to_minimal_coordinates[yosh",
     # The LGVI's sixth order: its fourth and eighth run by default.
     "test_rigid_body.py::test_lgvi_order_against_scipy[kahan_li6",
     # A composition takes Stormer-Verlet steps, whose reversal runs by default.

@@ -512,16 +512,15 @@ def test_backward_steps_leave_out_the_dense_output_nothing_interpolates():
     output) only where `SaveAt(ts=...)` interpolates it: JAX differentiated it
     before XLA removed it (the first calls are in `benchmarks/first_call.py`). The
     forward solve keeps it: diffrax decides what it interpolates."""
-    calls = []
-
-    class Counted(dvi.MidpointVI):
-        def _fractional_step(self, *args):
-            calls.append(args[-1])  # `dense`
-            return super()._fractional_step(*args)
 
     def traced(saveat):
-        jax.clear_caches()  # Each kind of step traced afresh.
-        calls.clear()
+        calls = []
+
+        # A class of its own for each trace, so that no step's trace is reused.
+        class Counted(dvi.MidpointVI):
+            def _fractional_step(self, *args):
+                calls.append(args[-1])  # `dense`
+                return super()._fractional_step(*args)
 
         def loss(y0):
             sol = dfx.diffeqsolve(
