@@ -175,7 +175,7 @@ def test_the_users_matplotlib_backend_is_untouched(tmp_path):
 def test_import_leaves_jaxlie_until_a_group_needs_it():
     """`import diffrax_vi` does not import jaxlie, whose jax_dataclasses imports
     flax where it is installed (0.27 against 0.15 s for the import); the first
-    logarithm of an attitude does, and equals jaxlie's."""
+    logarithm of an attitude does, and inverts the retraction."""
     out = _run(
         """
         import sys
