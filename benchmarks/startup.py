@@ -8,13 +8,14 @@ Every time is the wall time of a fresh process, as a user starts it:
 - `diffrax-vi --help` and a refused option (`--scene nope`), which the entry point
   answers without importing JAX;
 - the main job with `--no-cache`, then on an empty cache (cold), then again on that
-  cache (warm): the cache keeps what XLA compiled, and the warm run skips those
-  compilations (not the tracing, and not programs that hold a host callback, which
-  JAX does not store);
-- a second warm run, which also records when the study's solves were traced and
-  compiled (`prepare`, from the first start to the last end, on both cores): the
-  rest of the run (start-up, imports, the runs, the tables and figures) is the
-  floor that no cache of compiled programs could take a warm run below.
+  cache (warm): the cache keeps each traced program (`jax.export`) and what XLA
+  compiled from it, and the warm run reads both back instead of tracing and
+  compiling (not for programs that hold a host callback, which JAX serialises
+  neither way);
+- a second warm run, which also records the span in which the study readies its
+  solves (`prepare` and `track`: reading back, compiling, the untimed tracked runs,
+  from the first start to the last end, on both cores), and the rest of the run
+  (start-up, imports, the timed runs, the tables and figures).
 
 Run: `python benchmarks/startup.py` (recorded: `results/startup_cpu.txt`).
 """
@@ -30,24 +31,26 @@ import time
 BIN = pathlib.Path(sys.executable).parent
 
 
-# The main job, recording the span of the study's tracing and compilation.
+# The main job, recording the span in which the study readies its solves (traces
+# or reads back, compiles, and runs the tracked solves, which are not timed).
 PHASES = """
 import sys, time
 from _diffrax_vi_cli import main
 from diffrax_vi.study import _run
 
 spans = []
-prepare = _run.prepare
 
 
-def timed(*args, **kwargs):
-    start = time.perf_counter()
-    out = prepare(*args, **kwargs)
-    spans.append((start, time.perf_counter()))
-    return out
+def timed(f):
+    def g(*args, **kwargs):
+        start = time.perf_counter()
+        out = f(*args, **kwargs)
+        spans.append((start, time.perf_counter()))
+        return out
+    return g
 
 
-_run.prepare = timed
+_run.prepare, _run.track = timed(_run.prepare), timed(_run.track)
 main(sys.argv[1:], own_process=True)  # As the console script runs it.
 print(max(e for _, e in spans) - min(s for s, _ in spans))
 """
@@ -109,13 +112,11 @@ def main() -> None:
         f"main job, warm cache                {warm:7.2f}"
         f"   {warm / cold:.2f}x the cold run"
     )
+    print(f"a second warm run                   {warm_again:7.2f}")
+    print(f"  readying the solves               {prepared[0]:7.2f}")
     print(
-        f"  of a warm run ({warm_again:.2f} s), tracing and compiling   "
-        f"{prepared[0]:7.2f}"
-    )
-    print(
-        f"  the rest (start-up, runs, output)  {floor:7.2f}"
-        f"   {floor / cold:.2f}x the cold run: a warm run's floor"
+        f"  the rest: start-up, timed runs, output {floor:4.2f}"
+        f"   {floor / cold:.2f}x the cold run"
     )
     print(
         "targets: --help and a refused option <= 0.5x import diffrax; the main "

@@ -113,9 +113,10 @@ def _output(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--no-cache",
         action="store_true",
-        help="do not keep compiled programs in JAX's persistent compilation cache "
-        "($XDG_CACHE_HOME/diffrax-vi/jax, by default ~/.cache/diffrax-vi/jax), "
-        "which lets a repeated study skip compilation",
+        help="do not keep traced and compiled programs in $XDG_CACHE_HOME/diffrax-vi "
+        "(by default ~/.cache/diffrax-vi; JAX's persistent compilation cache in "
+        "jax/, the exported solves in programs/), which let a repeated study skip "
+        "tracing and compilation",
     )
 
 

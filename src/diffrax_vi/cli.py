@@ -15,6 +15,7 @@ import jax
 from _diffrax_vi_cli import DEFAULT_OUT, DEFAULT_SOLVERS, main as _main
 
 from ._private_api import reset_compilation_cache
+from .study._programs import keep_programs
 
 
 # The files each command writes, removed from `--out` by `--force` before it writes.
@@ -302,12 +303,33 @@ def compilation_cache(enabled: bool = True):
         reset_compilation_cache()
 
 
+def programs_dir() -> pathlib.Path:
+    """Where the command line keeps the solves its studies trace, exported by
+    `jax.export`, so that a repeated study reads them back instead of tracing them:
+    `$XDG_CACHE_HOME/diffrax-vi/programs`, beside [`diffrax_vi.cli.cache_dir`][].
+    Each is keyed by the command's options, the shapes of its arguments and the
+    source files of diffrax_vi and of the libraries it traces through; `--no-cache`
+    neither reads nor writes them."""
+    return cache_dir().parent / "programs"
+
+
+def _kept_programs(args: argparse.Namespace):
+    """The studies' traced programs kept in `programs_dir`, keyed by the options
+    that build the scene and the methods (not where the results go)."""
+    if args.no_cache:
+        return contextlib.nullcontext()
+    options = {
+        k: v for k, v in vars(args).items() if k not in ("out", "force", "no_cache")
+    }
+    return keep_programs(programs_dir(), repr(sorted(options.items())))
+
+
 def run(args: argparse.Namespace) -> int:
     """Run a parsed command (from `_diffrax_vi_cli`); returns the exit code."""
     if args.dtype == "float64":
         jax.config.update("jax_enable_x64", True)
     try:
-        with compilation_cache(not args.no_cache):
+        with compilation_cache(not args.no_cache), _kept_programs(args):
             return RUNS[args.command](args)
     except UsageError as e:
         print(f"diffrax-vi {args.command}: error: {e}", file=sys.stderr)
@@ -321,7 +343,8 @@ def main(argv: list[str] | None = None) -> int:
     It runs at the XLA setting that `import diffrax_vi` chose
     ([`diffrax_vi.compile_small_loops_whole`][]), the same for every method, and
     keeps its compiled programs in JAX's persistent compilation cache
-    ([`diffrax_vi.cli.compilation_cache`][]) unless `--no-cache` is given."""
+    ([`diffrax_vi.cli.compilation_cache`][]) and its traced ones in
+    [`diffrax_vi.cli.programs_dir`][] unless `--no-cache` is given."""
     return _main(argv)
 
 

@@ -18,6 +18,7 @@ from .._misc import all_finite
 from .._scan import FixedStepSolution, solve_fixed_steps
 from ..scenes import Scene
 from ._methods import Method
+from ._programs import compiled
 from ._track import EnergyBalance, TrackWorstError
 
 
@@ -280,14 +281,20 @@ def run(
 
 def run_all(scene: Scene, methods: list[Method], **kwargs) -> list[Outcome]:
     """`run` of each of `methods` on `scene` (same keywords), their solves traced
-    and compiled concurrently, one thread per core: XLA compiles without Python's
-    lock, so one method's compilation overlaps the next one's tracing. The runs
-    then take their turns, alone on the machine, so each wall time is a plain
-    solve's."""
+    and compiled concurrently, one thread per core: XLA compiles and runs without
+    Python's lock, so one method's compilation overlaps the next one's tracing.
+    Each tracked solve, which is not timed, runs as soon as it is compiled. The
+    timed runs then take their turns, alone on the machine, so each wall time is a
+    plain solve's."""
+
+    def ready(method: Method) -> tuple[Prepared, tuple | Exception]:
+        prepared = prepare(scene, method, **kwargs)
+        return prepared, track(prepared)
+
     workers = max(1, min(len(methods), os.cpu_count() or 1))
     with concurrent.futures.ThreadPoolExecutor(workers) as pool:
-        prepared = list(pool.map(lambda m: prepare(scene, m, **kwargs), methods))
-    return [execute(p) for p in prepared]
+        done = list(pool.map(ready, methods))
+    return [execute(prepared, tracked) for prepared, tracked in done]
 
 
 def prepare(
@@ -325,31 +332,37 @@ def prepare(
         progress=progress,
     )
     vmapped = jax.vmap if ensemble else lambda f: f
-    # Closures over `solves`: its arrays are constants of the compiled solves.
-    tracked = eqx.filter_jit(vmapped(lambda y0: solves.tracked(y0)))
-    plain = eqx.filter_jit(vmapped(lambda y0: solves.plain(y0)))
+    # Closures over `solves`: its arrays are constants of the compiled solves. The
+    # tracked solve returns arrays only, its result as a code (`_coded`), which a
+    # program kept between runs (`compiled`) needs.
+    tracked = vmapped(lambda y0: _coded(solves.tracked(y0)))
+    plain = vmapped(lambda y0: solves.plain(y0))
+    name = f"{method.name}, {t1}, {n_steps}, {n_save}, {dtype}, {ensemble}, {progress}"
     return Prepared(
         scene,
         y0,
         ensemble,
         n_save,
-        tracked.lower(y0).compile(),
-        plain.lower(y0).compile(),
+        compiled(f"tracked {name}", tracked, y0),
+        compiled(f"plain {name}", plain, y0),
     )
 
 
-def execute(prepared: Prepared) -> Outcome:
-    """Run the prepared solves: the tracked one for the errors, then the plain one,
-    timed."""
-    scene, y0, ensemble, n_save = (
-        prepared.scene,
-        prepared.y0,
-        prepared.ensemble,
-        prepared.n_save,
-    )
-    tracked, plain = prepared.tracked, prepared.plain
+def _coded(outputs: tuple) -> tuple:
+    """The tracked solve's outputs with its `RESULTS` as the array of its code."""
+    *rest, result = outputs
+    return (*rest, jax.tree.leaves(result)[0])
+
+
+def _result(code: Array) -> dfx.RESULTS:
+    """The `RESULTS` of a code from `_coded`."""
+    return jax.tree.unflatten(jax.tree.structure(dfx.RESULTS.successful), [code])
+
+
+def track(prepared: Prepared) -> tuple | Exception:
+    """Run the prepared tracked solve: its outputs, or the error it raised."""
     try:
-        errors, final, steps, result = jax.block_until_ready(tracked(y0))
+        return jax.block_until_ready(prepared.tracked(prepared.y0))
     except (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError) as error:
         # A vector field that cannot return a RESULTS raised (a Runge-Kutta solve of
         # a LagrangianTerm that left where the Legendre map or the constraint
@@ -357,7 +370,24 @@ def execute(prepared: Prepared) -> Outcome:
         # A compiled program raises equinox's error inside JAX's own.
         if "EquinoxRuntimeError" not in str(error):
             raise
-        return _failed(scene, y0, ensemble, n_save, error)
+        return error
+
+
+def execute(prepared: Prepared, tracked: tuple | Exception | None = None) -> Outcome:
+    """The outcome of the prepared solves: the tracked one's errors (`tracked`,
+    from `track`, or run now), and the plain one's time."""
+    scene, y0, ensemble, n_save = (
+        prepared.scene,
+        prepared.y0,
+        prepared.ensemble,
+        prepared.n_save,
+    )
+    if tracked is None:
+        tracked = track(prepared)
+    if isinstance(tracked, Exception):
+        return _failed(scene, y0, ensemble, n_save, tracked)
+    errors, final, steps, code = tracked
+    plain = prepared.plain
     # Compiled already (`prepare`): the best of the calls is the time, with no call
     # to warm up first.
     times = []
@@ -367,12 +397,12 @@ def execute(prepared: Prepared) -> Outcome:
         times.append(time.perf_counter() - start)
     wall_time = min(times)
     if not ensemble:
-        errors, final, steps, result = jax.tree.map(
-            lambda x: jnp.expand_dims(x, 0), (errors, final, steps, result)
+        errors, final, steps, code = jax.tree.map(
+            lambda x: jnp.expand_dims(x, 0), (errors, final, steps, code)
         )
     # diffrax's messages run to paragraphs; a table cell gets the first sentence.
     results = [
-        dfx.RESULTS[jax.tree.map(lambda x: x[i], result)].split(". ")[0] or "successful"
+        dfx.RESULTS[_result(code[i])].split(". ")[0] or "successful"
         for i in range(steps.shape[0])
     ]
     return Outcome(

@@ -1,0 +1,151 @@
+"""The command line's traced programs kept between runs (`study._programs`): a
+program read back computes what tracing it again would, a changed key traces again,
+and what cannot be kept is traced every time."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from diffrax_vi.cli import main, programs_dir
+from diffrax_vi.study import _programs, _run
+
+
+def _counted(calls: list):
+    def f(x):
+        calls.append(None)  # Once per trace.
+        return {"sum": jnp.sum(jnp.sin(x)), "x": (x * 2,)}
+
+    return f
+
+
+def test_a_kept_program_is_read_back_instead_of_traced(tmp_path):
+    calls = []
+    x = jnp.linspace(0.0, 1.0, 5)
+    expected = _counted([])(x)
+    with _programs.keep_programs(tmp_path, "context"):
+        first = _programs.compiled("f", _counted(calls), x)(x)
+        again = _programs.compiled("f", _counted(calls), x)(x)
+    assert len(calls) == 1 and len(list(tmp_path.iterdir())) == 1
+    for out in (first, again):
+        assert jax.tree.structure(out) == jax.tree.structure(expected)
+        assert all(
+            np.array_equal(a, b)
+            for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(expected))
+        )
+
+
+@pytest.mark.parametrize(
+    "change",
+    ["context", "name", "shape", "dtype"],
+)
+def test_a_program_is_traced_again_when_its_key_changes(tmp_path, change):
+    calls = []
+    x = jnp.zeros(3)
+    with _programs.keep_programs(tmp_path, "a"):
+        _programs.compiled("f", _counted(calls), x)
+    context, name, y = "a", "f", x
+    if change == "context":
+        context = "b"
+    elif change == "name":
+        name = "g"
+    elif change == "shape":
+        y = jnp.zeros(4)
+    else:
+        y = jnp.zeros(3, jnp.float32)
+    with _programs.keep_programs(tmp_path, context):
+        _programs.compiled(name, _counted(calls), y)
+    assert len(calls) == 2 and len(list(tmp_path.iterdir())) == 2
+
+
+def test_a_program_holding_a_host_callback_is_traced_every_time(tmp_path):
+    calls = []
+
+    def make():
+        def f(x):
+            calls.append(None)
+            y = jax.pure_callback(np.cos, jax.ShapeDtypeStruct(x.shape, x.dtype), x)
+            return y + 1
+
+        return f
+
+    x = jnp.ones(2)
+    with _programs.keep_programs(tmp_path, "c"):
+        outs = [_programs.compiled("f", make(), x)(x) for _ in range(2)]
+    assert len(calls) == 2 and not any(tmp_path.iterdir())
+    assert all(np.allclose(out, np.cos(1.0) + 1) for out in outs)
+
+
+def test_a_damaged_file_is_replaced(tmp_path):
+    calls = []
+    x = jnp.arange(3.0)
+    with _programs.keep_programs(tmp_path, "d"):
+        _programs.compiled("f", _counted(calls), x)
+        (path,) = tmp_path.iterdir()
+        path.write_bytes(path.read_bytes()[:100])
+        out = _programs.compiled("f", _counted(calls), x)(x)
+        assert len(calls) == 2 and np.allclose(out["sum"], jnp.sum(jnp.sin(x)))
+        _programs.compiled("f", _counted(calls), x)
+    assert len(calls) == 2
+
+
+def test_outside_keep_programs_nothing_is_kept(tmp_path):
+    calls = []
+    x = jnp.ones(2)
+    for _ in range(2):
+        _programs.compiled("f", _counted(calls), x)
+    assert len(calls) == 2
+
+
+def test_a_kept_solve_compiles_to_the_program_its_trace_does(tmp_path):
+    """The study times the kept program: XLA's optimised program of it is the one
+    it makes of the solve traced in the process, instruction for instruction."""
+    import collections
+    import re
+
+    from diffrax_vi.scenes import kepler
+    from diffrax_vi.study import as_method
+
+    scene, method = kepler(), as_method("MidpointVI")
+    settings = dict(t1=scene.period, n_steps=20, n_save=2, dtype=jnp.float64)
+    direct = _run.prepare(scene, method, y0=scene.y0, **settings)
+    with _programs.keep_programs(tmp_path, "e"):
+        kept = _run.prepare(scene, method, y0=scene.y0, **settings)
+    assert len(list(tmp_path.iterdir())) == 2
+
+    def instructions(compiled):
+        text = compiled.as_text()
+        return collections.Counter(re.findall(r" = \S+ ([\w-]+)\(", text))
+
+    for a, b in [(direct.plain, kept.plain), (direct.tracked, kept.tracked)]:
+        assert instructions(a) == instructions(b) and sum(instructions(a).values())
+
+
+def test_a_repeated_study_reads_its_programs_back(tmp_path, monkeypatch):
+    """The command line's second run of a study traces none of its solves and
+    tables the same numbers; `--no-cache` keeps nothing."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    traced = []
+    tracked = _run._Solves.tracked
+
+    def counting(self, y0):
+        traced.append(None)
+        return tracked(self, y0)
+
+    monkeypatch.setattr(_run._Solves, "tracked", counting)
+    argv = ["drift", "--periods", "2", "--steps-per-period", "10"]
+    argv += ["--solvers", "StormerVerlet,Tsit5"]
+    rows = []
+    for out in ("a", "b"):
+        assert main([*argv, "--out", str(tmp_path / out)]) == 0
+        summary = json.loads((tmp_path / out / "drift.json").read_text())["summary"]
+        for row in summary:
+            del row["wall_time_s"]
+        rows.append(summary)
+    assert len(traced) == 2  # Both methods, in the first run only.
+    assert rows[0] == rows[1]
+    assert len(list(programs_dir().iterdir())) == 4  # Tracked and plain, each.
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "off"))
+    assert main([*argv, "--no-cache", "--out", str(tmp_path / "c")]) == 0
+    assert len(traced) == 4 and not (tmp_path / "off").exists()
