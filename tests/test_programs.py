@@ -123,8 +123,10 @@ def test_a_kept_solve_compiles_to_the_program_its_trace_does(tmp_path):
 
 
 def test_a_repeated_study_reads_its_programs_back(tmp_path, monkeypatch):
-    """The command line's second run of a study traces none of its solves and
-    tables the same numbers; `--no-cache` keeps nothing."""
+    """Each command keeps what it compiles in $XDG_CACHE_HOME/diffrax-vi/jax and the
+    solves it traces in .../programs, and leaves the process's JAX settings as they
+    were: its second run traces none of its solves and tables the same numbers.
+    `--no-cache` reads and writes neither."""
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     traced = []
     tracked = _run._Solves.tracked
@@ -146,6 +148,8 @@ def test_a_repeated_study_reads_its_programs_back(tmp_path, monkeypatch):
     assert len(traced) == 2  # Both methods, in the first run only.
     assert rows[0] == rows[1]
     assert len(list(programs_dir().iterdir())) == 4  # Tracked and plain, each.
+    assert any((programs_dir().parent / "jax").iterdir())
+    assert jax.config.jax_compilation_cache_dir is None
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "off"))
     assert main([*argv, "--no-cache", "--out", str(tmp_path / "c")]) == 0
     assert len(traced) == 4 and not (tmp_path / "off").exists()

@@ -464,23 +464,6 @@ def test_every_scene_runs_with_no_flags(name, tmp_path, capsys):
     assert all(r["result"] == "successful" for r in rows), rows
 
 
-def test_cli_keeps_compiled_programs_in_the_user_cache(tmp_path, monkeypatch):
-    """Each command keeps its compilations in $XDG_CACHE_HOME/diffrax-vi/jax, and
-    leaves the process's JAX settings as they were; --no-cache writes nothing."""
-    import jax
-
-    small = ["--periods", "1", "--steps-per-period", "8", "--solvers", "Tsit5"]
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "off"))
-    assert main(["drift", *small, "--no-cache", "--out", str(tmp_path / "a")]) == 0
-    assert not (tmp_path / "off").exists()
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "on"))
-    assert (
-        main(["drift", *small, "--scene", "duffing", "--out", str(tmp_path / "b")]) == 0
-    )
-    assert any((tmp_path / "on" / "diffrax-vi" / "jax").iterdir())
-    assert jax.config.jax_compilation_cache_dir is None
-
-
 def test_verdict_weighs_every_invariant():
     """The heavy top's numbers from a 1000-period study: Tsit5 has the lowest
     energy error but leaves SO(3); the LGVI keeps every invariant, and the verdict
