@@ -1,5 +1,6 @@
 import dataclasses
 import pathlib
+import threading
 from collections.abc import Sequence
 
 import diffrax as dfx
@@ -224,6 +225,13 @@ class DriftStudy:
         return written
 
 
+def _import_figures() -> None:
+    try:
+        from . import _plot  # noqa: F401
+    except ImportError:  # Without matplotlib a study writes no figures.
+        pass
+
+
 def check_methods(scene: Scene, methods: list) -> None:
     """A forced scene's energy balance needs the work of the applied force, which a
     solver of partitioned terms (dq/dt = f(p), dp/dt = g(q)) cannot tell apart from
@@ -352,6 +360,9 @@ def drift(
         y0 = scene.perturbed(jr.key(seed), ensemble, spread)
         if shard:
             y0 = shard_ensemble(y0, ensemble)
+    # The figures' import of matplotlib runs beside the solves' compilation and
+    # runs, which leave Python's lock free.
+    threading.Thread(target=_import_figures, daemon=True).start()
     outcomes = run_all(
         scene,
         methods,
