@@ -90,6 +90,16 @@ def test_a_damaged_file_is_replaced(tmp_path):
     assert len(calls) == 2
 
 
+def test_a_folder_it_cannot_write_is_a_warning_not_a_failure(tmp_path):
+    blocked = tmp_path / "file"
+    blocked.write_text("")  # A file where the folder would be.
+    x = jnp.arange(2.0)
+    with _programs.keep_programs(blocked / "programs", "f"):
+        with pytest.warns(RuntimeWarning, match="cannot keep the solves"):
+            out = _programs.compiled("f", _counted([]), x)(x)
+    assert np.allclose(out["sum"], jnp.sum(jnp.sin(x)))
+
+
 def test_outside_keep_programs_nothing_is_kept(tmp_path):
     calls = []
     x = jnp.ones(2)

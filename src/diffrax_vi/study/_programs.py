@@ -27,6 +27,7 @@ import os
 import pathlib
 import sys
 import tempfile
+import warnings
 from collections.abc import Callable, Iterator
 
 import jax
@@ -142,7 +143,17 @@ def compiled(name: str, fn: Callable, *args: PyTree) -> Callable:
             # A host callback not seen above, or a custom call without JAX's
             # guarantee of compatibility.
             return traced.lower().compile()
-        _write(path, data)
+        try:
+            _write(path, data)
+        except OSError as e:
+            warnings.warn(
+                f"diffrax-vi cannot keep the solves it traces in {path.parent} "
+                f"({e.strerror}): a repeated study traces them again. Make the "
+                "folder writable, set XDG_CACHE_HOME to one that is, or pass "
+                "--no-cache.",
+                RuntimeWarning,
+                stacklevel=2,
+            )
     return jax.jit(exported.call).lower(*args).compile()
 
 
