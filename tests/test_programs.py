@@ -59,6 +59,24 @@ def test_a_program_is_traced_again_when_its_key_changes(tmp_path, change):
     assert len(calls) == 2 and len(list(tmp_path.iterdir())) == 2
 
 
+def test_the_key_follows_the_code(tmp_path, monkeypatch):
+    """An edited source file of a package the programs are traced through (here a
+    stand-in package) changes every key."""
+    package = tmp_path / "stand_in"
+    package.mkdir()
+    (package / "__init__.py").write_text("x = 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setattr(_programs, "_PACKAGES", ("stand_in",))
+    programs = _programs._Programs(tmp_path, "g")
+    paths = []
+    for text in ("x = 1\n", "x = 22\n"):
+        (package / "__init__.py").write_text(text)
+        _programs._code.cache_clear()
+        paths.append(programs.path("f", (jnp.zeros(2),)))
+    _programs._code.cache_clear()
+    assert paths[0] != paths[1]
+
+
 def test_a_program_holding_a_host_callback_is_traced_every_time(tmp_path):
     calls = []
 
