@@ -437,8 +437,7 @@ def _loop_reversible_bwd(
     # the state the step starts from, through which it is then differentiated. Its
     # dense output only where SaveAt(ts=...) interpolates it: JAX would otherwise
     # differentiate the vector field at both ends of every step before XLA removed
-    # it (the four-bar's gradient traced and lowered in 2.8-2.9 against 3.2 s, and
-    # its first call took 7.8-8.1 against 8.5 s, in turns).
+    # it (the first calls it cost are in the CHANGELOG).
     def step(t_start, t_end, y, args, terms, state, solver=solver, dense=False):
         y_next, _, dense_info, state, result = solver.fractional_step(
             terms,

@@ -184,8 +184,8 @@ def _exp_jvp(primals, tangents):
 def _log(F: Float[Array, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     # Imported where a difference of attitudes is first traced, not with the
     # package: jaxlie imports jax_dataclasses, which imports flax where it is
-    # installed, and `import diffrax_vi` took 0.27 against 0.15 s with them (after
-    # `import diffrax`, five runs each).
+    # installed, which nearly doubled the time of `import diffrax_vi` (the CHANGELOG
+    # has the figures).
     import jaxlie
 
     return jaxlie.SO3.from_matrix(F).log()

@@ -146,13 +146,12 @@ def entries(x: Array) -> tuple[Array, ...]:
     as `x[i]`: reverse mode transposes an entry picked out into a pad of the whole
     vector, and an implicit step differentiates a general Lagrangian (and a
     constraint) twice over, into dozens of pad fusions. With this and whole-vector
-    sums, the four-bar's `MidpointVI` first call took 2.8-3.0 against 3.4-3.8 s, its
-    reversible gradient 8.4-8.6 against 11.5-12.3 s and its steps 1.6-1.7 against
-    2.7 us; the double pendulum's `MidpointVI` steps 0.43 against 0.48-0.50 us (in
-    turns; the first calls are in `benchmarks/first_call.py`). A separable
-    potential, whose steps take first derivatives only, gains nothing: Hénon–Heiles's
-    `MidpointVI` steps took 0.18 against 0.16 us, and it keeps `q[0]`. An infinite
-    entry makes every entry NaN (0 * inf), which no step takes for a finite state."""
+    sums the four-bar's and the double pendulum's first calls, gradients and steps
+    take less time (the figures are in the CHANGELOG; the first calls in
+    `benchmarks/first_call.py`). A separable potential, whose steps take first
+    derivatives only, gains nothing (its steps took longer so), and Hénon–Heiles
+    keeps `q[0]`. An infinite entry makes every entry NaN (0 * inf), which no step
+    takes for a finite state."""
     units = np.eye(x.shape[-1], dtype=x.dtype)
     return tuple(jnp.sum(unit * x, axis=-1) for unit in units)
 

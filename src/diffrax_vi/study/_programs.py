@@ -99,11 +99,10 @@ _kept: _Programs | None = None
 def _read(path: pathlib.Path) -> "jax.export.Exported | None":
     try:
         return jax.export.deserialize(bytearray(path.read_bytes()))
-    except FileNotFoundError:
-        return None
     except Exception:
-        # A file cut short, or written by another version of JAX: flatbuffers and
-        # JAX raise several kinds of error for it. Traced again and replaced.
+        # None kept yet; or a file cut short, or written by another version of JAX,
+        # for which flatbuffers and JAX raise several kinds of error: traced again
+        # and replaced.
         return None
 
 
