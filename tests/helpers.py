@@ -6,9 +6,26 @@ import equinox as eqx
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
+import jax.random as jr
 import jax.tree_util as jtu
 import numpy as np
 import scipy.integrate
+
+
+def scene(name: str) -> dvi.scenes.Scene:
+    """`scenes.SCENES[name]()`, with the learned scene's network untrained: training
+    it compiles for half a minute per process, and the tests that take every scene
+    read its structure (the compiled loop, the methods it gets), not its weights.
+    Its own tests train it (tests/test_scenes.py)."""
+    if name != "learned":
+        return dvi.scenes.SCENES[name]()
+    from unittest import mock
+
+    from diffrax_vi.scenes import _learned
+
+    untrained = lambda seed, max_steps: dvi.scenes.LearnedLagrangian(jr.key(seed))
+    with mock.patch.object(_learned, "_trained", untrained):
+        return dvi.scenes.learned()
 
 
 class Pendulum(dvi.AbstractSeparableLagrangian):

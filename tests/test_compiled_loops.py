@@ -13,6 +13,8 @@ import pytest
 from diffrax_vi._lagrangian import constant_mass
 from diffrax_vi.diagnostics import compiled_loop_breakers, loop_breakers
 
+from .helpers import scene as make_scene
+
 
 SOLVERS = {
     "MidpointVI": dvi.MidpointVI,
@@ -61,7 +63,7 @@ def test_no_loop_is_broken_into_kernels(scene, solver):
     bodies) holds no LAPACK call anywhere, its start included: its check of the
     mass reads the diagonal, where an eigensolver's call (the first in a process
     imports SciPy's linalg to lower it) cost a free body's first call 0.12 s."""
-    scene = dvi.scenes.SCENES[scene]()
+    scene = make_scene(scene)
     text = jax.jit(_solve(scene, _make(solver))).lower(scene.y0).compile().as_text()
     breakers = loop_breakers(text)
     if solver == "Tsit5" and not scene.term().mass_checked:
