@@ -588,6 +588,26 @@ def _double_pendulum_rods(t, q, args):
     return jnp.stack([first @ first - length**2, second @ second - (0.7 * length) ** 2])
 
 
+# The double pendulum's forces in units of `args["scale"]` (arguments, not values
+# captured by a function made in each test: both units run the same compiled
+# programs).
+def _gravity(t, q, args):
+    mass, scale = args["mass"], args["scale"]
+    return 9.81 * scale * (mass[1] * q[1] + mass[3] * q[3])
+
+
+def _anharmonic_potential(t, q, args):
+    return _gravity(t, q, args) + 2.0 * args["scale"] * q[2] ** 4
+
+
+def _drive(t, q, v, args):
+    return jnp.array([0.3, 0.0, 0.0, 0.0]) * args["scale"] * jnp.cos(1.7 * t)
+
+
+def _general_lagrangian(t, q, v, args):
+    return 0.5 * v @ (args["mass"] * v) - _gravity(t, q, args)
+
+
 @pytest.mark.parametrize("scale", [1.0, 1e-3], ids=["unit", "milli"])
 def test_rattle_on_the_multipliers_is_the_constrained_trapezoidal_step(scale):
     """TrapezoidalVI on a separable Lagrangian with constraints solves RATTLE for the
@@ -597,25 +617,15 @@ def test_rattle_on_the_multipliers_is_the_constrained_trapezoidal_step(scale):
     constraints, unequal masses) with a positional drive agrees to round-off over 400
     steps, energy balance included, in any units."""
     mass = jnp.array([1.0, 1.0, 0.5, 0.5]) * scale
-    gravity = 9.81 * scale
-
-    def potential(t, q, args):
-        return gravity * (mass[1] * q[1] + mass[3] * q[3])
-
-    def drive(t, q, v, args):
-        return jnp.array([0.3, 0.0, 0.0, 0.0]) * scale * jnp.cos(1.7 * t)
-
-    separable = dvi.SeparableLagrangian(potential, mass)
-    general = dvi.Lagrangian(
-        lambda t, q, v, args: 0.5 * v @ (mass * v) - potential(t, q, args)
-    )
-    args = {"length": jnp.asarray(1.0)}
+    separable = dvi.SeparableLagrangian(_gravity, mass)
+    general = dvi.Lagrangian(_general_lagrangian)
+    args = {"length": jnp.asarray(1.0), "mass": mass, "scale": jnp.asarray(scale)}
     q0 = jnp.array([np.sin(1.0), -np.cos(1.0), np.sin(1.0) + 0.7, -np.cos(1.0)])
     y0 = (q0, jnp.zeros(4))
     finals = []
     for lagrangian in (separable, general):
         term = dvi.LagrangianTerm(
-            lagrangian, force=drive, constraint=_double_pendulum_rods
+            lagrangian, force=_drive, constraint=_double_pendulum_rods
         )
         sol = dfx.diffeqsolve(
             term,
@@ -638,15 +648,6 @@ def test_rattle_on_the_multipliers_is_the_constrained_trapezoidal_step(scale):
     assert np.max(np.abs(np.asarray(_double_pendulum_rods(4.0, q1, args)))) < 1e-13
 
 
-def _anharmonic_potential(t, q, args):
-    mass, scale = args["mass"], args["scale"]
-    return 9.81 * scale * (mass[1] * q[1] + mass[3] * q[3]) + 2.0 * scale * q[2] ** 4
-
-
-def _drive(t, q, v, args):
-    return jnp.array([0.3, 0.0, 0.0, 0.0]) * args["scale"] * jnp.cos(1.7 * t)
-
-
 @pytest.mark.parametrize("scale", [1.0, 1e-3], ids=["unit", "milli"])
 def test_constrained_midpoint_iterates_as_without_constraints(scale):
     """MidpointVI with constraints on a separable Lagrangian takes the fixed-point
@@ -665,7 +666,6 @@ def test_constrained_midpoint_iterates_as_without_constraints(scale):
         force=_drive,
         constraint=_double_pendulum_rods,
     )
-    # The scale as an argument: both units run the same compiled programs.
     args = {"length": jnp.asarray(1.0), "mass": mass, "scale": jnp.asarray(scale)}
     q0 = jnp.array([np.sin(1.0), -np.cos(1.0), np.sin(1.0) + 0.7, -np.cos(1.0)])
     finals = []
