@@ -16,7 +16,7 @@ def scene(name: str) -> dvi.scenes.Scene:
     """`scenes.SCENES[name]()`, with the learned scene's network untrained: training
     it compiles for half a minute per process, and the tests that take every scene
     read its structure (the compiled loop, the methods it gets), not its weights.
-    Its own tests train it (tests/test_scenes.py)."""
+    Its training is tested in tests/test_scenes.py."""
     if name != "learned":
         return dvi.scenes.SCENES[name]()
     from unittest import mock
