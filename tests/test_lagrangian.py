@@ -339,3 +339,20 @@ def test_user_functions_are_traced_once_per_signature():
     # One trace for each of a few signatures (a time known or traced, a state or a
     # point on a tangent line).
     assert 1 <= calls["lagrangian"] <= 4 and 1 <= calls["constraint"] <= 4, calls
+
+
+def test_functions_called_on_saved_states_are_one_program_each():
+    """`energy`, `velocity` and `project_onto_constraints` are called outside `jit`,
+    on a solve's saved states or its start: each is one compiled program, as
+    `diffeqsolve` is, not dozens of operations compiled and dispatched one by one
+    (the double pendulum's first `velocity` took 3.2 s so, against 0.37 s)."""
+    lagrangian, y0 = DoublePendulum(), (jnp.array([0.3, -0.2]), jnp.array([0.1, 0.4]))
+    pendulum = dvi.scenes.cartesian_pendulum()
+    calls = [
+        (lambda y: dvi.energy(lagrangian, 0.0, y), y0),
+        (lambda y: dvi.velocity(lagrangian, 0.0, y), y0),
+        (lambda y: dvi.project_onto_constraints(pendulum.term(), 0.0, y), pendulum.y0),
+    ]
+    for call, y in calls:
+        equations = jax.make_jaxpr(call)(y).eqns
+        assert [e.primitive.name for e in equations] == ["jit"], equations

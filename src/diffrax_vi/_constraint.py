@@ -295,6 +295,10 @@ def project_separable(lagrangian, jacobian: Array, rate: Array, p: P) -> Project
     return Projected(unravel(flat_p + impulse), unravel(impulse), mu, result)
 
 
+# One compiled program: eagerly, its Newton solves, projection and checks were each
+# compiled apart and dispatched op by op (the door of docs/lie-groups.md: 5.8-6.5 s
+# the first call and 2.1-2.5 s every call after, against 2.8-3.5 s and 1 ms).
+@eqx.filter_jit
 def project_onto_constraints(
     term, t0: RealScalarLike, y0: tuple[Q, P], args: Args = None
 ) -> tuple[tuple[Q, P], dfx.RESULTS]:

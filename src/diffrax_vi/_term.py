@@ -17,8 +17,8 @@ from ._lagrangian import (
     broadcast_mass,
     declared_mass,
     generalised_force,
+    inverse_legendre,
     mass_regular,
-    velocity,
 )
 from ._misc import all_finite, at_trace_time, error_if, split_state
 from ._space import coadjoint, is_euclidean, velocity as space_velocity
@@ -203,7 +203,9 @@ class LagrangianTerm(dfx.AbstractTerm):
     def _hamilton(self, t, y, args, v_guess):
         space = self.lagrangian.space
         q, p = split_state(y, "y", space)
-        v, result = velocity(self.lagrangian, t, y, args, v_guess=v_guess)
+        v, result = inverse_legendre(
+            self.lagrangian, t, y, args, v_guess, check_promise=True
+        )
         dp = generalised_force(self.lagrangian, t, q, v, args)
         if not is_euclidean(space):
             # The Euler-Poincare equations: the group's own term ad*_v p.

@@ -21,9 +21,9 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 from .._custom_types import V
 from .._lagrangian import (
     constant_mass,
+    inverse_legendre,
     mass_regular,
     momentum,
-    velocity,
 )
 from .._misc import all_finite, tree_size
 from .._private_api import unvmap_any
@@ -71,7 +71,7 @@ def check_start(step: StepInputs) -> Start:
     )
     # The velocity alone: Hamilton's equations would also trace the force (and a
     # constraint's index-reduced forces), which the start does not need.
-    v0, result = velocity(lagrangian, t, (q, p), args)
+    v0, result = inverse_legendre(lagrangian, t, (q, p), args, None, check_promise=True)
     n = tree_size(p)
     mass = constant_mass(lagrangian, p)
     if mass is not None:

@@ -7,7 +7,7 @@ from jaxtyping import Array, Float, PyTree
 
 from .._constraint import constraint_values
 from .._custom_types import Args, RealScalarLike
-from .._lagrangian import velocity
+from .._lagrangian import inverse_legendre
 from .._term import LagrangianTerm
 
 
@@ -75,7 +75,9 @@ def _tangent_basis(term: LagrangianTerm, y0: PyTree, args: Args) -> Array:
 
     def constraints(x):
         q, p = unravel(x)
-        v, _ = velocity(term.lagrangian, 0.0, (q, p), args)
+        v, _ = inverse_legendre(
+            term.lagrangian, 0.0, (q, p), args, None, check_promise=True
+        )
         g = lambda q_: constraint_values(term.constraint, 0.0, q_, args)
         hidden = jax.jvp(g, (q,), (v,))[1]
         return jnp.concatenate([g(q), hidden])

@@ -12,8 +12,8 @@ from jaxtyping import Array, Float
 from .._lagrangian import (
     AbstractQuadraticLagrangian,
     AbstractSeparableLagrangian,
+    inverse_legendre,
     momentum,
-    velocity,
 )
 from ._one_dof import DuffingLagrangian, parameter, PendulumLagrangian
 from ._scene import agm, check_count, check_positive, entries, GENERAL_SOLVERS, Scene
@@ -192,7 +192,9 @@ class ConstraintResiduals(eqx.Module):
 
     def hidden(self, t, y, args):
         q, p = y
-        v, _ = velocity(self.lagrangian, t, (q, p), args)
+        v, _ = inverse_legendre(
+            self.lagrangian, t, (q, p), args, None, check_promise=True
+        )
         return jax.jvp(lambda x: self.constraint(t, x, args), (q,), (v,))[1]
 
 

@@ -10,7 +10,7 @@ import numpy as np
 from jaxtyping import Array, PRNGKeyArray, PyTree
 
 from .._constraint import project_onto_constraints
-from .._lagrangian import AbstractLagrangian, energy
+from .._lagrangian import AbstractLagrangian, energy_value
 from .._space import is_euclidean, retract
 from .._term import LagrangianTerm
 
@@ -63,8 +63,9 @@ class Scene(eqx.Module):
         return LagrangianTerm(self.lagrangian, self.force, self.constraint)
 
     def energy(self, t, y, args) -> Array:
-        r"""The energy $E = p\cdot v - L$ at `(t, y)` ([`diffrax_vi.energy`][])."""
-        return energy(self.lagrangian, t, y, args)
+        r"""The energy $E = p\cdot v - L$ at `(t, y)` ([`diffrax_vi.energy`][]),
+        traced into the caller's program: a study tracks it in every step."""
+        return energy_value(self.lagrangian, t, y, args)
 
     def conserved(self) -> dict[str, Callable]:
         """Every conserved quantity, energy first, as `fn(t, y, args) -> array`. With

@@ -9,7 +9,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int, PyTree
 
 from .._force import applied_force, power
-from .._lagrangian import velocity
+from .._lagrangian import inverse_legendre
 from .._solver.base import VIState
 from .._term import LagrangianTerm
 
@@ -51,7 +51,9 @@ class EnergyBalance(eqx.Module):
         def power_at(s):
             t = t0 + s * (t1 - t0)
             q, p = interpolation.evaluate(t)
-            v, _ = velocity(self.term.lagrangian, t, (q, p), args)
+            v, _ = inverse_legendre(
+                self.term.lagrangian, t, (q, p), args, None, check_promise=True
+            )
             return power(applied_force(self.term.force, t, q, v, args), v)
 
         nodes = jnp.asarray(_NODES, jnp.result_type(t0, t1))
