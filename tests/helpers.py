@@ -12,20 +12,25 @@ import numpy as np
 import scipy.integrate
 
 
-def scene(name: str) -> dvi.scenes.Scene:
-    """`scenes.SCENES[name]()`, with the learned scene's network untrained: training
+def untrained_learned_scene():
+    """A context in which `scenes.learned()` builds its network untrained: training
     it compiles for half a minute per process, and the tests that take every scene
-    read its structure (the compiled loop, the methods it gets), not its weights.
-    Its training is tested in tests/test_scenes.py."""
-    if name != "learned":
-        return dvi.scenes.SCENES[name]()
+    read its structure (the compiled loop, the methods it gets, the checks a
+    command makes), not its weights. Its training is tested in
+    tests/test_scenes.py."""
     from unittest import mock
 
     from diffrax_vi.scenes import _learned
 
     untrained = lambda seed, max_steps: dvi.scenes.LearnedLagrangian(jr.key(seed))
-    with mock.patch.object(_learned, "_trained", untrained):
-        return dvi.scenes.learned()
+    return mock.patch.object(_learned, "_trained", untrained)
+
+
+def scene(name: str) -> dvi.scenes.Scene:
+    """`scenes.SCENES[name]()`, the learned scene untrained
+    (`untrained_learned_scene`)."""
+    with untrained_learned_scene():
+        return dvi.scenes.SCENES[name]()
 
 
 class Pendulum(dvi.AbstractSeparableLagrangian):

@@ -211,8 +211,9 @@ def test_lgvi_moves_the_attitude_once_per_step(monkeypatch):
     """The step computes its new attitude R0 cay(f) for the torque at the end and
     hands it to the engine (`MethodStep.q1`), which moves the state with it instead
     of retracting again: a second 3 x 3 product per step, 4% of the heavy top's
-    step. Retractions counted over one step run without jit; over 50 steps the
-    states are those of the engine's own retraction, to round-off (bitwise here)."""
+    step. Retractions counted in one traced step (each call is one in the program;
+    the engine's own would be a second); over 50 steps the states are those of the
+    engine's own retraction, to round-off (bitwise here)."""
     import dataclasses
 
     from diffrax_vi._solver import base, lgvi
@@ -235,9 +236,12 @@ def test_lgvi_moves_the_attitude_once_per_step(monkeypatch):
             lambda *a, _retract=module.retract: calls.append(1) or _retract(*a),
         )
     solver = dvi.LGVI()
-    with jax.disable_jit():
-        state = solver.init(term, 0.0, 0.01, scene.y0, scene.args)
-        solver.step(term, 0.0, 0.01, scene.y0, scene.args, state, False)
+
+    def step(y0):
+        state = solver.init(term, 0.0, 0.01, y0, scene.args)
+        return solver.step(term, 0.0, 0.01, y0, scene.args, state, False)
+
+    jax.make_jaxpr(step)(scene.y0)
     assert len(calls) == 1
 
 

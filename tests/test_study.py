@@ -23,7 +23,7 @@ from diffrax_vi.scenes import kepler
 from diffrax_vi.study import drift, Method, work_precision
 from diffrax_vi.study._track import TrackWorstError
 
-from .helpers import max_abs_diff, scene as make_scene
+from .helpers import max_abs_diff, scene as make_scene, untrained_learned_scene
 
 
 ROOT = pathlib.Path(__file__).parent.parent
@@ -777,7 +777,8 @@ def _documented_commands() -> list[str]:
 def test_every_documented_command_passes_its_checks(capsys):
     """Each command the README and the docs show parses, and passes every check its
     command makes before any work (the scene, its parameters, each method's first
-    step, the study's settings), as typed: none would exit 2."""
+    step, the study's settings), as typed: none would exit 2. The learned scene
+    builds its network untrained: the checks read its structure, not its weights."""
     import _diffrax_vi_cli
     from diffrax_vi.cli import checked
 
@@ -789,7 +790,8 @@ def test_every_documented_command_passes_its_checks(capsys):
             assert _diffrax_vi_cli.main(argv) == 0, command
             continue
         args = _diffrax_vi_cli._parser().parse_args(argv)
-        checked(args)
+        with untrained_learned_scene():
+            checked(args)
 
 
 def test_an_interval_without_a_step_holds_the_previous_error():
