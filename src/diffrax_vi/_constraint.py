@@ -295,9 +295,8 @@ def project_separable(lagrangian, jacobian: Array, rate: Array, p: P) -> Project
     return Projected(unravel(flat_p + impulse), unravel(impulse), mu, result)
 
 
-# One compiled program: eagerly, its Newton solves, projection and checks were each
-# compiled apart and dispatched op by op (the door of docs/lie-groups.md: 5.8-6.5 s
-# the first call and 2.1-2.5 s every call after, against 2.8-3.5 s and 1 ms).
+# One compiled program, like `velocity` and `energy`: op by op, its Newton solves,
+# projection and checks were compiled apart and dispatched again on every call.
 @eqx.filter_jit
 def project_onto_constraints(
     term, t0: RealScalarLike, y0: tuple[Q, P], args: Args = None
@@ -316,6 +315,8 @@ def project_onto_constraints(
 
     - `term`: a [`diffrax_vi.LagrangianTerm`][] with a `constraint`.
     - `t0`, `y0 = (q0, p0)`, `args`: as for `diffeqsolve`.
+
+    Like [`diffrax_vi.energy`][], one compiled program when called outside `jit`.
 
     **Returns:**
 

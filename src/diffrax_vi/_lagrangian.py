@@ -608,8 +608,8 @@ _LEGENDRE_NEWTON = Newton(damped=True)
 
 
 # The public functions a user calls outside `jit` (after a solve, over its saved
-# states) are one compiled program each, as `diffrax.diffeqsolve` is: op by op, the
-# double pendulum's first `velocity` took 3.2 s against 0.37 s jitted. The package
+# states) are one compiled program each, as `diffrax.diffeqsolve` is; op by op their
+# first calls took 2-9 times longer (benchmarks/helpers_first_call.py). The package
 # itself calls `inverse_legendre` and `energy_value`, inside its own programs.
 @eqx.filter_jit
 def velocity(
@@ -644,6 +644,8 @@ def velocity(
         order.
     - `v_guess`: Newton's initial guess. Defaults to zero, from which the first
         Newton iterate is the answer for a Lagrangian quadratic in `v`.
+
+    Like [`diffrax_vi.energy`][], one compiled program when called outside `jit`.
 
     **Returns:**
 
@@ -779,6 +781,11 @@ def energy(
     For a time-independent Lagrangian this is the conserved Hamiltonian. The
     arguments after the first are diffrax's `(t, y, args)`, so
     `functools.partial(diffrax_vi.energy, L)` is a `diffrax.SaveAt(fn=...)`.
+
+    Called outside `jit` (over a solve's saved states, say, under `jax.vmap`), it
+    is one compiled program, as `diffrax.diffeqsolve` is: a Python number among
+    its arguments is part of that program, so a new value of `t` compiles again
+    where a JAX array would not ([Benchmarks](../benchmarks.md#helpers-first-call)).
 
     **Arguments:**
 
