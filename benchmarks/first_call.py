@@ -81,18 +81,24 @@ print(json.dumps(dict(trace=lowered_at - start, lower=compiled_at - lowered_at,
 """
 
 
-def measure(scene: str, solver: str, adjoint: str, processes: int) -> dict:
-    """The fastest of `processes` fresh processes' first calls (by their total)."""
+def fastest(case: str, argv: list[str], processes: int, key) -> dict:
+    """The times `case` prints last (a JSON object), run as a script with `argv` in
+    `processes` fresh processes: the fastest run by `key`."""
     runs = []
     for _ in range(processes):
         done = subprocess.run(
-            [sys.executable, "-c", CASE, scene, solver, adjoint],
-            capture_output=True,
-            text=True,
+            [sys.executable, "-c", case, *argv], capture_output=True, text=True
         )
         assert done.returncode == 0, done.stderr[-2000:]
         runs.append(json.loads(done.stdout.strip().splitlines()[-1]))
-    return min(runs, key=lambda run: sum(run.values()))
+    return min(runs, key=key)
+
+
+def measure(scene: str, solver: str, adjoint: str, processes: int) -> dict:
+    """The fastest of `processes` fresh processes' first calls (by their total)."""
+    return fastest(
+        CASE, [scene, solver, adjoint], processes, lambda run: sum(run.values())
+    )
 
 
 def main() -> None:

@@ -14,9 +14,12 @@ Run: `python benchmarks/helpers_first_call.py [--processes 3]` (recorded:
 """
 
 import argparse
-import json
-import subprocess
+import pathlib
 import sys
+
+
+sys.path.insert(0, str(pathlib.Path(__file__).parent))
+from first_call import fastest  # noqa: E402
 
 
 # (function, scene): the scenes whose velocity is not a division by the mass.
@@ -66,16 +69,7 @@ print(json.dumps(dict(first=middle - start, second=end - middle)))
 
 def measure(name: str, scene: str, mode: str, processes: int) -> dict:
     """The fastest of `processes` fresh processes (by the first call)."""
-    runs = []
-    for _ in range(processes):
-        done = subprocess.run(
-            [sys.executable, "-c", CASE, name, scene, mode],
-            capture_output=True,
-            text=True,
-        )
-        assert done.returncode == 0, done.stderr[-2000:]
-        runs.append(json.loads(done.stdout.strip().splitlines()[-1]))
-    return min(runs, key=lambda run: run["first"])
+    return fastest(CASE, [name, scene, mode], processes, lambda run: run["first"])
 
 
 def main() -> None:
