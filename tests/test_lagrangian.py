@@ -345,7 +345,7 @@ def test_functions_called_on_saved_states_are_one_program_each():
     """`energy`, `velocity` and `project_onto_constraints` are called outside `jit`,
     on a solve's saved states or its start: each is one compiled program, as
     `diffeqsolve` is, not dozens of operations compiled and dispatched one by one
-    (the double pendulum's first `velocity` took 3.2 s so, against 0.37 s)."""
+    (2 to 9 times slower first calls, `benchmarks/helpers_first_call.py`)."""
     lagrangian, y0 = DoublePendulum(), (jnp.array([0.3, -0.2]), jnp.array([0.1, 0.4]))
     pendulum = dvi.scenes.cartesian_pendulum()
     calls = [
