@@ -5,8 +5,9 @@ states or its start: `diffrax_vi.energy` over 101 states (`jax.vmap`),
 Each is one compiled program (`equinox.filter_jit`); the other column runs the same
 function operation by operation (its `__wrapped__`), as it ran before. Every case
 runs in a fresh process, the fastest of `--processes` (3) by its first call: the
-first call (tracing, compiling and running), then a second call on other states of
-the same shapes. A trivial program is compiled first, so that the backend's start-up
+first call (tracing, compiling and running), then a second call on new arrays of
+the same shapes (other states for `energy` and `velocity`; the same start, copied,
+for the projection). A trivial program is compiled first, so that the backend's start-up
 is not charged to the case.
 
 Run: `python benchmarks/helpers_first_call.py [--processes 3]` (recorded:
@@ -22,7 +23,8 @@ sys.path.insert(0, str(pathlib.Path(__file__).parent))
 from first_call import fastest  # noqa: E402
 
 
-# (function, scene): the scenes whose velocity is not a division by the mass.
+# (function, scene): for `energy` and `velocity`, scenes whose velocity is not a
+# division by the mass; for the projection, a linkage and joined rigid bodies.
 CASES = [
     ("energy", "double_pendulum"),
     ("energy", "bead_wire"),
