@@ -36,18 +36,19 @@ from diffrax_vi._private_api import (
 )
 
 
-def _scene_lagrangians():
-    made = {name: make() for name, make in scenes.SCENES.items() if name != "learned"}
-    made["learned"] = scenes.Scene(
+def _make_scene(name):
+    """The scene `name`, the learned one untrained and small. Built by the test
+    that takes it, not when the suite is collected: building every scene took each
+    worker 2.4 s of its collection, half of them for tests the default suite
+    deselects."""
+    if name != "learned":
+        return scenes.SCENES[name]()
+    return scenes.Scene(
         name="learned",
         lagrangian=scenes.LearnedLagrangian(jr.key(0), width=4, depth=1),
         y0=(jnp.array(1.5), jnp.array(0.0)),
         period=7.0,
     )
-    return made
-
-
-SCENE_LIST = list(_scene_lagrangians().items())
 
 
 def _final_sum(lagrangian, scene):
@@ -79,14 +80,14 @@ SLOW_SCENES = (
 
 
 @pytest.mark.parametrize(
-    "name,scene",
+    "name",
     [
-        pytest.param(n, s, marks=pytest.mark.slow) if n in SLOW_SCENES else (n, s)
-        for n, s in SCENE_LIST
+        pytest.param(n, marks=pytest.mark.slow) if n in SLOW_SCENES else n
+        for n in scenes.SCENES
     ],
-    ids=[n for n, _ in SCENE_LIST],
 )
-def test_scene_parameters_are_differentiable(name, scene, getkey):
+def test_scene_parameters_are_differentiable(name, getkey):
+    scene = _make_scene(name)
     params, static = eqx.partition(scene.lagrangian, eqx.is_inexact_array)
     leaves, treedef = jax.tree.flatten(params)
     assert leaves, f"{name} has no differentiable parameter"
