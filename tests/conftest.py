@@ -15,26 +15,19 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="diffrax-vi-test-cache-")
 
 
-def pytest_collection_finish(session):
-    """Move the heap that imports and collection made (about 3e5 objects: JAX,
-    diffrax, the test modules) out of reach of the garbage collector, as the console
-    script does after its imports (`_diffrax_vi_cli.command`). See
-    `_freeze_what_the_test_keeps`."""
-    gc.collect()
-    gc.freeze()
-
-
 @pytest.fixture(autouse=True)
 def _freeze_what_the_test_keeps():
-    """After each test, collect its garbage and freeze what it leaves alive: JAX's
-    caches of traces and compiled programs, which grow through a worker's run.
-    Python's full collections walk every object not frozen, so in a worker that
-    kept them all they came to cost 52-61 s of its run (the whole suite on 2
-    workers), and each test that traces much paid for the heap of the tests before
-    it. Walked once here, each test's objects cost a quarter of that (14-17 s a
-    worker). Four test files in one process: 410 -> 334 s, full collections
-    28 -> 8 s, peak memory 3.20 -> 3.18 GB. Objects frozen stay until
-    `_release_compiled_programs` unfreezes them."""
+    """After each test, collect its garbage and freeze what it leaves alive (after
+    a worker's first test, the imported heap too, as the console script freezes
+    its own after its imports, `_diffrax_vi_cli.command`): JAX's caches of traces
+    and compiled programs grow through a worker's run. Python's full collections
+    walk every object not frozen, so in a worker that kept them all they came to
+    cost 52-61 s of its run (the whole suite on 2 workers), and each test that
+    traces much paid for the heap of the tests before it. Walked once here, each
+    test's objects cost a quarter of that (14-17 s a worker). Four test files in
+    one process: 410 -> 334 s, full collections 28 -> 8 s, peak memory 3.20 ->
+    3.18 GB. Objects frozen stay until `_release_compiled_programs` unfreezes
+    them."""
     yield
     gc.collect()
     gc.freeze()
