@@ -436,18 +436,19 @@ def generalised_force(
     )
 
 
-def mass_regular(mass: PyTree[ArrayLike], like: PyTree) -> Bool[Array, ""]:
+def mass_regular(mass: PyTree[ArrayLike], like: PyTree, xp=jnp) -> Bool[ArrayLike, ""]:
     """Whether a diagonal mass is invertible: every entry finite and nonzero. Each
     velocity `p / m` is then as accurate as its momentum, however the entries
     compare: no ratio between them is a test, since it would change with the units
     of each coordinate and call a planet of 1e-8 solar masses beside the Sun
-    singular in float32."""
+    singular in float32. Computed in the array module `xp` (JAX, or NumPy for a
+    mass known now)."""
     dtype = jnp.result_type(*jtu.tree_leaves(like))
     if not jnp.issubdtype(dtype, jnp.inexact):
         # An integer mass (`mass=2`) checked against itself: in the default float.
         dtype = jnp.result_type(float)
-    leaves = [jnp.asarray(m, dtype) for m in jtu.tree_leaves(mass)]
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(m) & (m != 0)) for m in leaves]))
+    leaves = [xp.asarray(m, dtype) for m in jtu.tree_leaves(mass)]
+    return xp.all(xp.stack([xp.all(xp.isfinite(m) & (m != 0)) for m in leaves]))
 
 
 def momentum_offset(lagrangian: AbstractLagrangian, t, q: Q, args: Args) -> P:

@@ -204,28 +204,29 @@ def solve_fixed_steps(
     t1_floor = t1
     for _ in range(100):
         t1_floor = np.nextafter(t1_floor, np.asarray(-np.inf, dtype))
+    times = (t0, t1, dt0, t1_floor)
     # The solver's `init` is given its first step's times as static Python numbers
     # (exact in any float dtype), so that it checks them when traced: a check at run
     # time is a host callback, and JAX's persistent compilation cache stores no
-    # program that holds one.
-    with jax.ensure_compile_time_eval():
-        times = tuple(jnp.asarray(x) for x in (t0, t1, dt0, t1_floor))
-        first = _step_end(jnp.ones((), jnp.int32), *times, n)
+    # program that holds one. Computed in NumPy, which compiles nothing (in JAX,
+    # each operation here was a program of its own).
+    first = _step_end(np.ones((), np.int32), *times, n, xp=np)
     first_step = (float(t0), float(first))
-    _check_solver(terms, solver, times[0], y0, args)
+    _check_solver(terms, solver, t0, y0, args)
     # Compiled with equinox, as diffeqsolve is, so that an error raised inside the
     # loop (a LagrangianTerm's, under a Runge-Kutta solver) reads as its message,
     # not as a failed host callback.
     return _scan_steps(terms, solver, times, first_step, y0, args, n, n_save, unroll)
 
 
-def _step_end(k, t0, t1, dt0, t1_floor, n):
+def _step_end(k, t0, t1, dt0, t1_floor, n, xp=jnp):
     """The end of step k = 1, ..., n as diffrax.ConstantStepSize places it: t0 + dt0
-    first, then the fraction k / n of the interval, and t1 exactly last."""
+    first, then the fraction k / n of the interval, and t1 exactly last; in the
+    array module `xp` (JAX, or NumPy for times known now)."""
     dtype = t0.dtype
-    t = t0 + (t1 - t0) * (k.astype(dtype) / jnp.asarray(n, dtype))
-    t = jnp.where(k == 1, t0 + dt0, jnp.where(k == n, t1, t))
-    return jnp.where(t > t1_floor, t1, t)
+    t = t0 + (t1 - t0) * (k.astype(dtype) / xp.asarray(n, dtype))
+    t = xp.where(k == 1, t0 + dt0, xp.where(k == n, t1, t))
+    return xp.where(t > t1_floor, t1, t)
 
 
 @eqx.filter_jit
@@ -233,8 +234,8 @@ def _scan_steps(terms, solver, times, first_step, y0, args, n, n_save, unroll):
     t0, t1, _, _ = times
     dtype = t0.dtype
     per_interval = n // n_save
-    with jax.ensure_compile_time_eval():
-        start, first = (jnp.asarray(x, dtype) for x in first_step)
+    # NumPy's, known when traced (the solver checks them) at no compilation.
+    start, first = (np.asarray(x, dtype) for x in first_step)
     state = solver.init(terms, start, first, y0, args)
     if unroll is None:
         step = jax.make_jaxpr(

@@ -5,6 +5,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from jaxtyping import Array, ArrayLike, PyTree
 
 from ._constraint import multiplier_force
@@ -73,15 +74,14 @@ def mass_settles_velocity(lagrangian: AbstractLagrangian) -> bool:
     return not bool(_mass_checked_when_known(mass)[1])
 
 
-def _mass_checked_when_known(mass: PyTree) -> tuple[PyTree, Array]:
-    """A declared mass as arrays, and whether it is singular: computed when traced
-    where the mass is known then."""
-
-    def check(m):
-        m = jtu.tree_map(jnp.asarray, m)
+def _mass_checked_when_known(mass: PyTree) -> tuple[PyTree, bool | Array]:
+    """A declared mass as arrays, and whether it is singular: computed now, in
+    NumPy, where the mass is known (in JAX each operation of the check was a
+    program of its own to compile: 0.2 s of a process's first term), else traced."""
+    m = at_trace_time(lambda mass: jtu.tree_map(jnp.asarray, mass), mass)
+    if any(isinstance(x, jax.core.Tracer) for x in jtu.tree_leaves(m)):
         return m, ~mass_regular(m, m)
-
-    return at_trace_time(check, mass)
+    return m, not mass_regular(m, m, xp=np)
 
 
 class LagrangianTerm(dfx.AbstractTerm):

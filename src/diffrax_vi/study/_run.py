@@ -321,7 +321,8 @@ def prepare(
         args=scene.args,
         ts=ts,
         dt0=dt0,
-        fixed_times=tuple(np.asarray(x) for x in (ts[0], ts[-1], dt0))
+        # Read on the host: indexing `ts` would compile a program per index.
+        fixed_times=tuple(np.asarray(x) for x in (*np.asarray(ts)[[0, -1]], dt0))
         if fixed
         else None,
         conserved=scene.conserved(),
@@ -354,8 +355,8 @@ def _coded(outputs: tuple) -> tuple:
     return (*rest, jax.tree.leaves(result)[0])
 
 
-def _result(code: Array) -> dfx.RESULTS:
-    """The `RESULTS` of a code from `_coded`."""
+def _result(code: np.ndarray) -> dfx.RESULTS:
+    """The `RESULTS` of a code from `_coded` (an array, as equinox reads one)."""
     return jax.tree.unflatten(jax.tree.structure(dfx.RESULTS.successful), [code])
 
 
@@ -386,7 +387,8 @@ def execute(prepared: Prepared, tracked: tuple | Exception | None = None) -> Out
         tracked = track(prepared)
     if isinstance(tracked, Exception):
         return _failed(scene, y0, ensemble, n_save, tracked)
-    errors, final, steps, code = tracked
+    # On the host, where reading them compiles nothing.
+    errors, final, steps, code = jax.tree.map(np.asarray, tracked)
     plain = prepared.plain
     # Compiled already (`prepare`): the best of the calls is the time, with no call
     # to warm up first.
@@ -398,17 +400,17 @@ def execute(prepared: Prepared, tracked: tuple | Exception | None = None) -> Out
     wall_time = min(times)
     if not ensemble:
         errors, final, steps, code = jax.tree.map(
-            lambda x: jnp.expand_dims(x, 0), (errors, final, steps, code)
+            lambda x: np.expand_dims(x, 0), (errors, final, steps, code)
         )
     # diffrax's messages run to paragraphs; a table cell gets the first sentence.
     results = [
-        dfx.RESULTS[_result(code[i])].split(". ")[0] or "successful"
+        dfx.RESULTS[_result(np.asarray(code[i]))].split(". ")[0] or "successful"
         for i in range(steps.shape[0])
     ]
     return Outcome(
         # In the scene's order (energy first), not the sorted order of a JAX dict.
         max_errors={k: np.asarray(errors[k], np.float64) for k in columns(scene)},
-        final=jax.tree.map(np.asarray, final),
+        final=final,
         steps=int(np.max(steps)),
         wall_time=wall_time,
         results=results,
