@@ -243,6 +243,42 @@ def test_cli_end_to_end(tmp_path, capsys):
     assert "non-symplectic energy errors grow" in verdict[0]
 
 
+SUPERSCRIPT_DIGITS = str.maketrans("⁻⁰¹²³⁴⁵⁶⁷⁸⁹", "-0123456789")
+
+
+@pytest.mark.parametrize("limits", [(1e-17, 1e-2), (6.0, 6e3), (0.3, 2.0)])
+def test_figure_labels_are_matplotlibs_in_unicode(limits):
+    """The figures' log axes label the ticks matplotlib's own formatter labels, and
+    each label, read back as a number, is its tick's value: spans of 15, 3 and one
+    decade (the last with labelled minor ticks, 2×10⁻¹)."""
+    from diffrax_vi.study._plot import _log_labels
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import LogFormatterSciNotation
+
+    ax = Figure().subplots()
+    ax.loglog(limits, limits)
+    _log_labels(ax)
+    labelled = set()
+    for axis in (ax.xaxis, ax.yaxis):
+        for minor in (False, True):
+            ticks = axis.get_minorticklocs() if minor else axis.get_majorticklocs()
+            ours = axis.get_minor_formatter() if minor else axis.get_major_formatter()
+            reference = LogFormatterSciNotation(labelOnlyBase=not minor)
+            reference.set_axis(axis)
+            for tick, label, expected in zip(
+                ticks, ours.format_ticks(ticks), reference.format_ticks(ticks)
+            ):
+                assert bool(label) == bool(expected) and "$" not in label
+                if label:
+                    coefficient, _, power = label.rpartition("10")
+                    value = float(coefficient.rstrip("×") or 1) * 10.0 ** int(
+                        power.translate(SUPERSCRIPT_DIGITS) or 1
+                    )
+                    assert value == pytest.approx(tick, rel=1e-12), label
+                    labelled.add(minor)
+    assert labelled == ({False, True} if limits[1] / limits[0] < 10 else {False})
+
+
 @pytest.mark.parametrize(
     "argv,message",
     [

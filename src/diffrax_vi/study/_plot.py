@@ -2,14 +2,42 @@
 so the user's backend is never touched."""
 
 import pathlib
+import re
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.ticker import LogFormatterSciNotation
 
 
 # Errors are plotted on log axes; an exact zero (energy of a quadratic Lagrangian
 # under a variational integrator) is shown at this floor rather than dropped.
 FLOOR = 1e-17
+
+_SUPERSCRIPTS = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
+
+
+class _UnicodeLogFormatter(LogFormatterSciNotation):
+    """matplotlib's labels of a log axis (which ticks get one, and what it says, as
+    `LogFormatterSciNotation` decides), written in Unicode superscripts (10⁻¹⁵, 2×10³)
+    instead of mathtext: the same labels, without parsing a mathtext expression for
+    each, which took 0.1-0.25 s of a process's first figures."""
+
+    def __call__(self, x, pos=None) -> str:
+        label = super().__call__(x, pos)
+        label = label.removeprefix(r"$\mathdefault{").removesuffix("}$")
+        return re.sub(
+            r"\^\{(-?\d+)\}",
+            lambda m: m.group(1).translate(_SUPERSCRIPTS),
+            label.replace(r"\times", "×"),
+        )
+
+
+def _log_labels(ax) -> None:
+    """Label both log axes of `ax` with `_UnicodeLogFormatter`, as matplotlib's
+    log scale sets up its own (every minor tick may get a label)."""
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.set_major_formatter(_UnicodeLogFormatter())
+        axis.set_minor_formatter(_UnicodeLogFormatter(labelOnlyBase=False))
 
 
 def _scene(study) -> str:
@@ -23,6 +51,7 @@ def plot_drift(study, invariant: str, path: pathlib.Path) -> pathlib.Path:
     for run in study.runs:
         ts, err = run.ts[1:], run.errors[invariant][1:]
         ax.loglog(ts, err + FLOOR, label=f"{run.solver} ({run.wall_time:.3g} s)")
+    _log_labels(ax)
     ax.set_xlabel("time")
     ax.set_ylabel(f"|{invariant}(t) - {invariant}(0)|")
     members = f", worst of {study.members}" if study.members > 1 else ""
@@ -51,6 +80,7 @@ def plot_work_precision(study, path: pathlib.Path) -> pathlib.Path:
             if points:
                 style = "--" if solver.startswith(("Tsit5", "Dopri")) else "-"
                 ax.loglog(*zip(*points), style + "o", ms=3, label=solver)
+        _log_labels(ax)
         ax.set_xlabel("wall time (s)")
         ax.set_ylabel(key.replace("_", " "))
         ax.grid(True, which="both", alpha=0.3)
