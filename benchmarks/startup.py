@@ -17,6 +17,12 @@ Every time is the wall time of a fresh process, as a user starts it:
   from the first start to the last end, on both cores), and the rest of the run
   (start-up, imports, the timed runs, the tables and figures).
 
+Each process may write Python's bytecode cache, as on a user's machine, where the
+package's modules are compiled once (at installation, or at the first import of an
+editable install); an environment that sets `PYTHONDONTWRITEBYTECODE` (this
+machine's does) would otherwise have every process compile diffrax_vi's source
+again, 0.1 s of each run.
+
 Run: `python benchmarks/startup.py` (recorded: `results/startup_cpu.txt`).
 """
 
@@ -64,7 +70,10 @@ def seconds(command: list[str], env: dict | None = None, cwd=None, out=None) -> 
         command,
         capture_output=True,
         text=True,
-        env={**os.environ, **(env or {})},
+        env={
+            **{k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"},
+            **(env or {}),
+        },
         cwd=cwd,
     )
     elapsed = time.perf_counter() - start
