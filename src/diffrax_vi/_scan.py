@@ -234,7 +234,8 @@ def _scan_steps(terms, solver, times, first_step, y0, args, n, n_save, unroll):
     t0, t1, _, _ = times
     dtype = t0.dtype
     per_interval = n // n_save
-    # NumPy's, known when traced (the solver checks them) at no compilation.
+    # Known when traced, for the solver's checks, as NumPy numbers: no program to
+    # compile for them.
     start, first = (np.asarray(x, dtype) for x in first_step)
     state = solver.init(terms, start, first, y0, args)
     if unroll is None:
