@@ -97,12 +97,12 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=3)
     rounds = parser.parse_args().rounds
     cli = str(BIN / "diffrax-vi")
+    job = [cli, "drift", "--out"]
     times = collections.defaultdict(list)
     prepared = []
     for _ in range(rounds):
         with tempfile.TemporaryDirectory() as work:
             cache = {"XDG_CACHE_HOME": str(pathlib.Path(work) / "cache")}
-            job = [cli, "drift", "--out"]
             times["import"].append(seconds([sys.executable, "-c", "import diffrax"]))
             times["help"].append(seconds([cli, "--help"]))
             times["refused"].append(seconds([cli, "drift", "--scene", "nope"]))

@@ -28,7 +28,7 @@ import jax.tree_util as jtu
 from ._adaptive import ReversibleController, ReversibleState
 from ._force import depends_on_velocity
 from ._lagrangian import Lagrangian
-from ._misc import call_traced_once, tree_size
+from ._misc import call_traced_once, traced, tree_size
 from ._private_api import (
     clip_to_end,
     is_subsaveat,
@@ -95,7 +95,7 @@ def _hoisted(fn, *example):
     if fn is None:
         return None
     converted = eqx.filter_closure_convert(fn, *example)
-    if any(isinstance(x, jax.core.Tracer) for x in jtu.tree_leaves(converted)):
+    if traced(converted):
         return converted
     return fn
 

@@ -136,12 +136,17 @@ def tree_max_abs(tree: PyTree) -> Array:
     return jnp.max(jnp.stack(leaves))
 
 
+def traced(tree: PyTree) -> bool:
+    """Whether any leaf of `tree` is traced (not known until the program runs)."""
+    return any(isinstance(x, jax.core.Tracer) for x in jtu.tree_leaves(tree))
+
+
 def at_trace_time(fn, *xs):
     """`fn(*xs)`, computed when traced where every array in `xs` is known then (so
     that a check can read it), else traced as usual (under
     `jax.ensure_compile_time_eval` a traced argument costs far more tracing: 0.16 s
     for a rigid body's start check)."""
-    if any(isinstance(x, jax.core.Tracer) for x in jtu.tree_leaves(xs)):
+    if traced(xs):
         return fn(*xs)
     with jax.ensure_compile_time_eval():
         return fn(*xs)

@@ -2,7 +2,6 @@ from collections.abc import Callable
 
 import diffrax as dfx
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
@@ -21,7 +20,7 @@ from ._lagrangian import (
     inverse_legendre,
     mass_regular,
 )
-from ._misc import all_finite, at_trace_time, error_if, split_state
+from ._misc import all_finite, at_trace_time, error_if, split_state, traced
 from ._space import coadjoint, is_euclidean, velocity as space_velocity
 
 
@@ -69,7 +68,7 @@ def mass_settles_velocity(lagrangian: AbstractLagrangian) -> bool:
     mass = declared_mass(lagrangian)
     if mass is None:
         return False
-    if any(isinstance(m, jax.core.Tracer) for m in jtu.tree_leaves(mass)):
+    if traced(mass):
         return False
     return not bool(_mass_checked_when_known(mass)[1])
 
@@ -79,7 +78,7 @@ def _mass_checked_when_known(mass: PyTree) -> tuple[PyTree, bool | Array]:
     NumPy, where the mass is known (in JAX each operation of the check was a
     program of its own to compile: 0.2 s of a process's first term), else traced."""
     m = at_trace_time(lambda mass: jtu.tree_map(jnp.asarray, mass), mass)
-    if any(isinstance(x, jax.core.Tracer) for x in jtu.tree_leaves(m)):
+    if traced(m):
         return m, ~mass_regular(m, m)
     return m, not mass_regular(m, m, xp=np)
 
