@@ -16,7 +16,7 @@ G(q_1) M^{-1} p_1 + \partial_t g(t_1, q_1) = 0.$$
 The positions are explicit in the $m$ multipliers $\lambda$, so Newton's method runs
 on the $m$ equations $g(t_1, q_1(\lambda)) = 0$ rather than on the $n + m$ unknowns
 of the general constrained step, and $\mu$ solves one linear $m \times m$ system
-(`project_separable`). The force and the constraint Jacobian at $q_1$ start the next
+(`project_constant_mass`). The force and the constraint Jacobian at $q_1$ start the next
 step: one evaluation of each per step. These are the equations the general path
 solves, so the states agree to the root finder's tolerance.
 """
@@ -38,7 +38,7 @@ from .._constraint import (
     constraint_rate,
     constraint_scale,
     constraint_values,
-    project_separable,
+    project_constant_mass,
 )
 from .._lagrangian import broadcast_mass, mass_regular
 from .._root_finders import known_root, solve
@@ -156,7 +156,7 @@ def rattle_step(
     force1 = force(t1, q1)
     jacobian1 = constraint_jacobian(g, t1, q1, args)
     end = unravel(half_step(lam) + 0.5 * h * jax.flatten_util.ravel_pytree(force1)[0])
-    projected = project_separable(
+    projected = project_constant_mass(
         term.lagrangian, jacobian1, constraint_rate(g, t1, q1, args), end
     )
     dp = jtu.tree_map(lambda a, b: a - b, projected.p, p0)
