@@ -75,14 +75,16 @@ def constrained_step(
     made_jump: Bool[ArrayLike, ""],
     residual_at: Callable[[StepInputs, PyTree], tuple[PyTree, PyTree]],
     increments_at: Callable[[StepInputs, PyTree], tuple[Q, P]],
+    step_at: Callable[[StepInputs, PyTree], Q],
     root_finding: AbstractStepRootFinding,
     max_steps: int,
     work_at: Callable[[StepInputs, PyTree], Array] | None = None,
     inverse_mass: PyTree | None = None,
 ) -> MethodStep:
-    """One constrained step of the method whose unconstrained equations, increments
-    and (with a force) work of its discrete forces are `residual_at(step, w)`,
-    `increments_at(step, w)` and `work_at(step, w)`, and whose unknowns have the
+    """One constrained step of the method whose unconstrained equations, increments,
+    position increment alone and (with a force) work of its discrete forces are
+    `residual_at(step, w)`, `increments_at(step, w)`, `step_at(step, w)` and
+    `work_at(step, w)`, and whose unknowns have the
     inverse masses `inverse_mass` (a separable Lagrangian; `None` otherwise): the
     default policy then iterates as without constraints, solving for the
     multipliers in each iteration (`FixedPoint`). The constraint forces do no work
@@ -107,8 +109,7 @@ def constrained_step(
         w, lam = unknowns
         moved = shifted(lam)
         r, s = residual_at(moved, w)
-        dq, _ = increments_at(moved, w)
-        q1 = retract(space, q0, dq)
+        q1 = retract(space, q0, step_at(moved, w))
         return (r, constraint_values(g, t1, q1, args)), (
             s,
             constraint_scale(jacobian0, q1, space),

@@ -63,6 +63,12 @@ class AbstractImplicitVI(
     def stage_increments(self, step: StepInputs, unknowns: PyTree) -> tuple[Q, P]:
         """The increments `(q1 - q0, p1 - p0)` of the step with these unknowns."""
 
+    def stage_step(self, step: StepInputs, unknowns: PyTree) -> Q:
+        """The position increment `q1 - q0` of the step with these unknowns: the
+        first of `stage_increments`. A constrained step's equations read it at
+        every iterate, where the momenta's increments would be traced for nothing."""
+        return self.stage_increments(step, unknowns)[0]
+
     @abc.abstractmethod
     def stage_work(self, step: StepInputs, unknowns: PyTree) -> Array:
         """The work of the step's discrete applied forces with these unknowns, by
@@ -107,6 +113,7 @@ class AbstractImplicitVI(
                 made_jump,
                 self.stage_residual,
                 self.stage_increments,
+                self.stage_step,
                 root_finding(self.root_finder),
                 self.root_find_max_steps,
                 None if step.term.force is None else self.stage_work,

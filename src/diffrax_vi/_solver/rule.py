@@ -4,6 +4,7 @@ equation in the step's velocity, its increments and the work of its discrete for
 `TrapezoidalVI` steps the trapezoidal rule this way, and `MidpointVI` the Lie
 midpoint rule on a group."""
 
+import jax.tree_util as jtu
 from jaxtyping import Array, PyTree
 
 from .._custom_types import P, Q, V
@@ -32,6 +33,12 @@ def rule_residual(
         step.momentum_offset,
         term.force,
     )
+
+
+def rule_step(step: StepInputs, v: V) -> Q:
+    r"""The position increment of the step with velocity `v` ($q_1 = q_0 \oplus h v$):
+    the first of `rule_increments`, without tracing the momenta's derivatives."""
+    return jtu.tree_map(lambda x: step.h * x, v)
 
 
 def rule_increments(

@@ -29,7 +29,7 @@ from .base import (
 from .constrained import constrained_step, init_constrained
 from .implicit import IMPLICIT_ARGS_DOC
 from .rattle import rattle_init, rattle_step, RattleState
-from .rule import rule_increments, rule_residual, rule_work
+from .rule import rule_increments, rule_residual, rule_step, rule_work
 from .stormer_verlet import kick_drift_kick, poisoned_force
 from .unknowns import (
     init_unknowns,
@@ -172,6 +172,7 @@ class TrapezoidalVI(
                 made_jump,
                 _residual,
                 _increments,
+                rule_step,
                 root_finding(self.root_finder),
                 self.root_find_max_steps,
                 None if step.term.force is None else _work,

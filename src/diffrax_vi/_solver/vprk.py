@@ -45,7 +45,7 @@ from .._space import is_euclidean
 from .._tolerance import COEFFICIENT_ATOL, ORDER_CONDITION_ATOL, PRODUCT_TOL
 from .base import StepInputs
 from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC, SYMMETRIC_POSITIVE
-from .rule import rule_increments, rule_residual, rule_work
+from .rule import rule_increments, rule_residual, rule_step, rule_work
 from .trees import satisfied_order, TREE_ORDER_MAX
 
 
@@ -388,10 +388,13 @@ class AbstractVPRK(AbstractImplicitVI):
         if self._on_group(step):
             return rule_increments(_MIDPOINT, step, stage_v)
         dl_dq, _ = self._stage_grads(step, stage_v)
-        b = self.tableau.b
-        dq = jtu.tree_map(lambda x: step.h * x, _combine(b, stage_v))
-        dp = jtu.tree_map(lambda x: step.h * x, _combine(b, dl_dq))
-        return dq, dp
+        dp = jtu.tree_map(lambda x: step.h * x, _combine(self.tableau.b, dl_dq))
+        return self.stage_step(step, stage_v), dp
+
+    def stage_step(self, step: StepInputs, stage_v: PyTree) -> Q:
+        if self._on_group(step):
+            return rule_step(step, stage_v)
+        return jtu.tree_map(lambda x: step.h * x, _combine(self.tableau.b, stage_v))
 
 
 _VPRK_REFERENCES = r"""
