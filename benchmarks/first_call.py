@@ -32,6 +32,7 @@ SCENES = [
     ("free_rigid_body", ["MidpointVI", "LGVI"]),
     ("heavy_top", ["LGVI"]),
     ("four_bar", ["MidpointVI"]),
+    ("rigid_double_pendulum", ["TrapezoidalVI"]),
 ]
 
 CASE = """
@@ -110,7 +111,7 @@ def main() -> None:
         f"{processes} fresh processes"
     )
     print(
-        f"{'scene':<16} {'solver':<22} {'trace':>6} {'lower':>6} {'compile':>7} "
+        f"{'scene':<21} {'solver':<22} {'trace':>6} {'lower':>6} {'compile':>7} "
         f"{'total':>6}  vs Tsit5 (trace, total)  grad/forward (checkpoint, reversible)"
     )
     for scene, solvers in SCENES:
@@ -118,7 +119,7 @@ def main() -> None:
         t_total = sum(tsit5.values())
         t_grad = sum(measure(scene, "Tsit5", "checkpoint", processes).values())
         print(
-            f"{scene:<16} {'Tsit5':<22} {tsit5['trace']:6.2f} {tsit5['lower']:6.2f} "
+            f"{scene:<21} {'Tsit5':<22} {tsit5['trace']:6.2f} {tsit5['lower']:6.2f} "
             f"{tsit5['compile']:7.2f} {t_total:6.2f}"
             f"{'':27}{t_grad / t_total:5.2f}x"
         )
@@ -130,7 +131,7 @@ def main() -> None:
                 for a in ("checkpoint", "reversible")
             ]
             print(
-                f"{scene:<16} {solver:<22} {ours['trace']:6.2f} {ours['lower']:6.2f} "
+                f"{scene:<21} {solver:<22} {ours['trace']:6.2f} {ours['lower']:6.2f} "
                 f"{ours['compile']:7.2f} {total:6.2f}  "
                 f"{ours['trace'] / tsit5['trace']:5.2f}x {total / t_total:5.2f}x"
                 f"            {grads[0]:5.2f}x {grads[1]:5.2f}x"
