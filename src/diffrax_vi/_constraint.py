@@ -283,9 +283,8 @@ def project_constant_mass(lagrangian, jacobian: Array, rate: Array, p: P) -> Pro
     $(G M^{-1} G^\top)\mu = G M^{-1} p + \partial g/\partial t$ by unrolled
     elimination (no LAPACK call in the step). On a group $G$ is left-trivialised and
     $p$ the body-frame momentum, whose velocity is $M^{-1}p$ as in a vector space.
-    Newton's method on $\mu$ would reach the same root in one iteration, but its loop
-    and the Jacobian of the Legendre map in every step cost the rigid double
-    pendulum's `MidpointVI` solve a third of its compile time."""
+    Newton's method on $\mu$ reaches the same root in one iteration, but puts a loop
+    and the Jacobian of the Legendre map in every step's program."""
     flat_p, unravel = jax.flatten_util.ravel_pytree(p)
     inverse_mass = 1 / _flat(constant_mass(lagrangian, p))
     weighted = jacobian * inverse_mass[None, :]

@@ -16,8 +16,8 @@ G(q_1) M^{-1} p_1 + \partial_t g(t_1, q_1) = 0.$$
 The positions are explicit in the $m$ multipliers $\lambda$, so Newton's method runs
 on the $m$ equations $g(t_1, q_1(\lambda)) = 0$ rather than on the $n + m$ unknowns
 of the general constrained step, and $\mu$ solves one linear $m \times m$ system
-(`project_constant_mass`). The force and the constraint Jacobian at $q_1$ start the next
-step: one evaluation of each per step. These are the equations the general path
+(`project_constant_mass`). The force and the constraint Jacobian at $q_1$ start the
+next step: one evaluation of each per step. These are the equations the general path
 solves, so the states agree to the root finder's tolerance.
 """
 
