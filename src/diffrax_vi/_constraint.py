@@ -208,7 +208,8 @@ def project_momentum(
     projection, Hairer, Lubich & Wanner (2006), VII.1.4). For a Lagrangian that
     declares a constant mass ($v = M^{-1}p$: separable, or rigid bodies in the body
     frame) the equation is linear, $(G M^{-1} G^\top)\mu = G M^{-1} p +
-    \partial g/\partial t$: one $m \times m$ solve (`RESULTS.singular` where
+    \partial g/\partial t$: up to 16 constraints (`newton_is_dense`), one
+    $m \times m$ solve by unrolled elimination (`RESULTS.singular` where
     $G M^{-1} G^\top$ is singular to working precision). Otherwise Newton's method on
     $\mu$; for a Lagrangian quadratic in the velocity one iteration solves it.
 
