@@ -381,11 +381,13 @@ def test_cli_help_and_study_errors(capsys):
     assert main([]) == 2
 
 
-def test_cli_help_and_bad_options_answer_without_jax():
-    """`--help` (which lists the scenes) and an option argparse refuses answer from
-    the entry point alone: JAX is never imported."""
+def test_cli_help_and_bad_options_answer_without_jax(tmp_path):
+    """`--help` (which lists the scenes), an option argparse refuses and an `--out`
+    the command refuses (a folder with files in it, or a file) answer from the
+    entry point alone: JAX is never imported."""
+    (tmp_path / "notes.txt").write_text("mine")
     code = textwrap.dedent(
-        """
+        f"""
         import contextlib, io, sys
         import _diffrax_vi_cli as cli
         out, err = io.StringIO(), io.StringIO()
@@ -394,10 +396,16 @@ def test_cli_help_and_bad_options_answer_without_jax():
                 cli.main(["drift", "--help"]),
                 cli.main(["drift", "--scene", "nope"]),
                 cli.main(["work-precision", "--rtols", "tight"]),
+                cli.main(["drift", "--out", {str(tmp_path)!r}]),
+                cli.main(["seed", "--out", {str(tmp_path / "notes.txt")!r}]),
             ]
-        assert codes == [0, 2, 2], codes
+        assert codes == [0, 2, 2, 2, 2], codes
         assert "free_rigid_body" in out.getvalue() and "--no-cache" in out.getvalue()
-        assert "invalid choice: 'nope'" in err.getvalue(), err.getvalue()
+        lines = err.getvalue().splitlines()
+        assert "invalid choice: 'nope'" in lines[0], lines
+        assert lines[-2].startswith("diffrax-vi drift: error: --out "), lines
+        assert "is not empty: pass --force" in lines[-2], lines
+        assert lines[-1].endswith("notes.txt is a file, not a folder."), lines
         assert "jax" not in sys.modules
         print("ok")
         """
@@ -417,13 +425,37 @@ def test_only_the_console_script_freezes_the_heap(monkeypatch):
     import _diffrax_vi_cli as cli
     import diffrax_vi.cli
 
-    frozen = []
+    frozen, exits = [], []
     monkeypatch.setattr(gc, "freeze", lambda: frozen.append(True))
+    monkeypatch.setattr(cli, "exit_now", exits.append)
     monkeypatch.setattr(diffrax_vi.cli, "run", lambda args: 0)
     argv = ["diffrax-vi", "drift", "--scene", "kepler"]
     monkeypatch.setattr(sys, "argv", argv)
-    assert cli.main(argv[1:]) == 0 and not frozen
-    assert cli.command() == 0 and frozen == [True]
+    assert cli.main(argv[1:]) == 0 and not frozen and not exits
+    assert cli.command() == 0 and frozen == [True] and exits == [0]
+
+
+def test_console_script_exits_after_its_output_and_exit_handlers():
+    """`exit_now` ends the process with the command's code, without Python's
+    teardown, but only once what it printed (buffered, into a pipe) is out and its
+    `atexit` handlers have run."""
+    code = textwrap.dedent(
+        """
+        import atexit, sys
+        import _diffrax_vi_cli as cli
+        atexit.register(lambda: print("handler ran"))
+        print("table " * 2000)
+        print("warning", file=sys.stderr)
+        cli.exit_now(3)
+        print("after exit_now")
+        """
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=False
+    )
+    assert done.returncode == 3, done.stderr
+    assert done.stdout == "table " * 2000 + "\nhandler ran\n"
+    assert done.stderr == "warning\n"
 
 
 def test_cli_scene_names_are_the_scenes():

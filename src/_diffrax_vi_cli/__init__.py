@@ -5,8 +5,11 @@ as importing anything inside `diffrax_vi` imports JAX first. The Python API is
 `diffrax_vi.cli.main`."""
 
 import argparse
+import atexit
 import gc
 import math
+import os
+import pathlib
 import sys
 
 
@@ -243,6 +246,24 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def refused_out(args: argparse.Namespace) -> str | None:
+    """Why the command refuses the folder `--out` names, or `None`: a file, or a
+    folder that holds files, unless `--force`. Read before JAX is imported, so that
+    the refusal answers as fast as argparse's own."""
+    if args.out is None:
+        return None
+    out = pathlib.Path(args.out)
+    if out.exists() and not out.is_dir():
+        return f"--out {out} is a file, not a folder."
+    if out.is_dir() and not args.force and any(out.iterdir()):
+        return (
+            f"--out {out} is not empty: pass --force to replace the results there, "
+            "or name another folder (without --out, each run writes a new folder in "
+            f"{DEFAULT_OUT}/)."
+        )
+    return None
+
+
 def main(argv: list[str] | None = None, *, own_process: bool = False) -> int:
     """Run the command line on `argv` (default: `sys.argv[1:]`); returns the exit
     code (see `diffrax_vi.cli.main`). `own_process`: see `command`."""
@@ -253,6 +274,10 @@ def main(argv: list[str] | None = None, *, own_process: bool = False) -> int:
         return int(e.code or 0)
     if args.command is None:
         parser.print_help()
+        return 2
+    refused = refused_out(args)
+    if refused is not None:
+        print(f"{parser.prog} {args.command}: error: {refused}", file=sys.stderr)
         return 2
     from diffrax_vi.cli import run
 
@@ -269,9 +294,30 @@ def main(argv: list[str] | None = None, *, own_process: bool = False) -> int:
 def command() -> int:
     """The `diffrax-vi` console script (and `python -m diffrax_vi`): `main` in a
     process of its own, which may keep the heap it imported out of the garbage
-    collector's way (a caller of `diffrax_vi.cli.main` keeps its process as it
-    is)."""
-    return main(own_process=True)
+    collector's way and end without tearing it down (a caller of
+    `diffrax_vi.cli.main` keeps its process as it is)."""
+    code = main(own_process=True)
+    exit_now(code)
+    return code
+
+
+def exit_now(code: int) -> None:
+    """End this process with `code` once its output is flushed and its exit
+    handlers (`atexit`) have run, without Python's teardown of every module and
+    object, which takes 0.1-0.2 s after a study (`benchmarks/startup.py`). Where
+    the output cannot be flushed (a closed pipe) it returns, and Python exits as
+    usual, reporting that."""
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+    except (OSError, ValueError):
+        return
+    atexit._run_exitfuncs()
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+    finally:
+        os._exit(code)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ import pathlib
 import sys
 
 import jax
-from _diffrax_vi_cli import DEFAULT_OUT, DEFAULT_SOLVERS, main as _main
+from _diffrax_vi_cli import DEFAULT_OUT, DEFAULT_SOLVERS, main as _main, refused_out
 
 from ._private_api import reset_compilation_cache
 from .study._programs import keep_programs
@@ -142,15 +142,10 @@ def _out(args: argparse.Namespace, scene: str) -> pathlib.Path:
         out = root / f"{args.command}-{scene}-{k}"
     else:
         out = pathlib.Path(args.out)
-        if out.exists() and not out.is_dir():
-            raise UsageError(f"--out {out} is a file, not a folder.")
-        if out.is_dir() and any(out.iterdir()):
-            if not args.force:
-                raise UsageError(
-                    f"--out {out} is not empty: pass --force to replace the results "
-                    "there, or name another folder (without --out, each run writes "
-                    f"a new folder in {DEFAULT_OUT}/)."
-                )
+        refused = refused_out(args)
+        if refused is not None:
+            raise UsageError(refused)
+        if out.is_dir():
             for pattern in OUTPUTS[args.command]:
                 for stale in out.glob(pattern):
                     stale.unlink()
