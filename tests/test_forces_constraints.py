@@ -369,6 +369,65 @@ def test_project_onto_constraints():
         dvi.project_onto_constraints(dvi.LagrangianTerm(OSCILLATOR), 0.0, Y0)
 
 
+def _four_bar_projection(q, p):
+    """The four-bar's momentum projected onto its hidden constraint, written out in
+    numpy from the scene's formulas: M(q) from its kinetic energy, G(q) from its
+    loop closure (the same lengths), mu from (G M^-1 G^T) mu = G M^-1 p."""
+    lagrangian = scenes.FourBarLagrangian()
+    l1, l2, l3, m1, m2, m3 = (
+        float(getattr(lagrangian, k)) for k in ("l1", "l2", "l3", "m1", "m2", "m3")
+    )
+    mass = np.diag([(m1 / 3 + m2) * l1**2, m2 * l2**2 / 3, m3 * l3**2 / 3])
+    mass[0, 1] = mass[1, 0] = 0.5 * m2 * l1 * l2 * np.cos(q[0] - q[1])
+    arms = np.array([l1, l2, -l3])
+    G = np.stack([-arms * np.sin(q), arms * np.cos(q)])
+    inverse_mass = np.linalg.inv(mass)
+    mu = np.linalg.solve(G @ inverse_mass @ G.T, G @ inverse_mass @ p)
+    return p - G.T @ mu, G, inverse_mass
+
+
+def test_quadratic_momentum_projection_is_one_linear_solve():
+    """Projecting the four-bar's momentum (its mass depends on its angles) onto the
+    hidden constraint, as every constrained step ends, is one solve of G M^-1 G^T:
+    no Newton loop in the step's program. Its value is numpy's solve of the same
+    equation, and its derivatives, in the momentum (exact: I - G^T S^-1 G M^-1) and
+    in the angles (central differences of numpy's), are those of the projection."""
+    from diffrax_vi._constraint import project_momentum
+    from diffrax_vi._misc import has_loop
+
+    term = scenes.four_bar().term()
+    rng = np.random.default_rng(3)
+    q = np.asarray(scenes.four_bar().y0[0]) + rng.normal(scale=0.1, size=3)
+    p = rng.normal(size=3)
+    project = lambda q_, p_: project_momentum(term, 0.0, q_, p_, None)
+    assert not has_loop(jax.make_jaxpr(project)(q, p).jaxpr)
+    projected = jax.jit(project)(q, p)
+    assert projected.result == dfx.RESULTS.successful
+    expected, G, inverse_mass = _four_bar_projection(q, p)
+    assert np.max(np.abs(projected.p - expected)) < 1e-14 * np.max(np.abs(p))
+    assert np.max(np.abs(G @ inverse_mass @ projected.p)) < 1e-14 * np.max(np.abs(p))
+
+    along_p, along_q = jax.jit(jax.jacfwd(lambda q_, p_: project(q_, p_).p, (1, 0)))(
+        q, p
+    )
+    schur = G @ inverse_mass @ G.T
+    exact = np.eye(3) - G.T @ np.linalg.solve(schur, G @ inverse_mass)
+    assert np.max(np.abs(along_p - exact)) < 1e-14
+    step = 1e-5
+    differences = np.stack(
+        [
+            (
+                _four_bar_projection(q + step * e, p)[0]
+                - _four_bar_projection(q - step * e, p)[0]
+            )
+            / (2 * step)
+            for e in np.eye(3)
+        ],
+        axis=1,
+    )
+    assert np.max(np.abs(along_q - differences)) < 1e-8 * np.max(np.abs(differences))
+
+
 @pytest.mark.parametrize("scale", [1.0, 1e-3], ids=["unit", "milli"])
 def test_inconsistent_start_is_an_error(scale):
     """A start off the constraint manifold is refused, in any units: the check is

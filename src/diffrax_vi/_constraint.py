@@ -48,7 +48,7 @@ from ._linear import (
     unrolled_lu_solve,
 )
 from ._misc import all_finite, call_traced_once, split_state, state_dtype
-from ._root_finders import Newton, solve
+from ._root_finders import known_root, Newton, solve
 from ._space import (
     is_euclidean,
     retract,
@@ -205,13 +205,15 @@ def project_momentum(
 ) -> Projected:
     r"""$p - G(q)^\top\mu$ with $\mu$ such that $G(q)\,v(q, p - G^\top\mu)
     + \partial g/\partial t = 0$: the momentum on the hidden constraint (RATTLE's
-    projection, Hairer, Lubich & Wanner (2006), VII.1.4). For a Lagrangian that
-    declares a constant mass ($v = M^{-1}p$: separable, or rigid bodies in the body
-    frame) the equation is linear, $(G M^{-1} G^\top)\mu = G M^{-1} p +
-    \partial g/\partial t$: up to 16 constraints (`newton_is_dense`), one
-    $m \times m$ solve by unrolled elimination (`RESULTS.singular` where
-    $G M^{-1} G^\top$ is singular to working precision). Otherwise Newton's method on
-    $\mu$; for a Lagrangian quadratic in the velocity one iteration solves it.
+    projection, Hairer, Lubich & Wanner (2006), VII.1.4). Where the velocity is
+    affine in the momentum, $v(q, p - G^\top\mu) = v(q, p) - M^{-1}G^\top\mu$ (a
+    Lagrangian that declares a constant mass: separable, or rigid bodies in the body
+    frame; or one marked quadratic in $v$ with at most 16 degrees of freedom), the
+    equation is linear, $(G M^{-1} G^\top)\mu = G v(q, p) + \partial g/\partial t$:
+    up to 16 constraints (`newton_is_dense`), one $m \times m$ solve by unrolled
+    elimination (`project_affine`; `RESULTS.singular` where $G M^{-1} G^\top$ is
+    singular to working precision). Beyond 16 constraints, Newton's method on $\mu$,
+    which one iteration solves.
 
     Where the velocity is itself a root (a Lagrangian not known to be quadratic in
     $v$, or one of more than 16 degrees of freedom), Newton's method solves for
@@ -233,16 +235,18 @@ def project_momentum(
     def moved(mu):
         return jtu.tree_map(lambda a, b: a + b, p, impulse(mu))
 
-    if constant_mass(term.lagrangian, p) is not None and newton_is_dense(m):
+    # Inside a step the solve's start has checked the quadratic marker.
+    def velocity(p):
+        return inverse_legendre(term.lagrangian, t, (q, p), args, None, False)
+
+    if newton_is_dense(m) and constant_mass(term.lagrangian, p) is not None:
         return project_constant_mass(term.lagrangian, jacobian, rate, p)
+    if newton_is_dense(m) and velocity_is_explicit(term.lagrangian, p):
+        return project_affine(jacobian, rate, p, velocity)
     if velocity_is_explicit(term.lagrangian, p):
 
         def residual(mu):
-            # Inside the step: the solve's start has checked the quadratic marker.
-            v, _ = inverse_legendre(
-                term.lagrangian, t, (q, moved(mu)), args, None, check_promise=False
-            )
-            return hidden_constraint(jacobian, v, rate)
+            return hidden_constraint(jacobian, velocity(moved(mu))[0], rate)
 
         solved = solve(residual, mu0, Newton(), 16)
         mu = solved.value
@@ -277,27 +281,63 @@ def _reduced_solve(
     return scale * y, ratio
 
 
-def project_constant_mass(lagrangian, jacobian: Array, rate: Array, p: P) -> Projected:
-    r"""`project_momentum` for a Lagrangian that declares a constant mass
-    (`constant_mass`), $v = M^{-1}p$, given the constraint Jacobian $G$ and rate
-    $\partial g/\partial t$ at the point: one $m \times m$ solve of
-    $(G M^{-1} G^\top)\mu = G M^{-1} p + \partial g/\partial t$ by unrolled
-    elimination (no LAPACK call in the step). On a group $G$ is left-trivialised and
-    $p$ the body-frame momentum, whose velocity is $M^{-1}p$ as in a vector space.
-    Newton's method on $\mu$ reaches the same root in one iteration, but puts a loop
-    and the Jacobian of the Legendre map in every step's program."""
+def project_affine(
+    jacobian: Array,
+    rate: Array,
+    p: P,
+    velocity: Callable[[P], tuple[PyTree, dfx.RESULTS]],
+) -> Projected:
+    r"""`project_momentum` where `velocity(p) -> (v, result)` is affine in `p`,
+    $v(p - G^\top\mu) = v(p) - M^{-1}G^\top\mu$, given the constraint Jacobian $G$
+    and rate $\partial g/\partial t$ at the point: one $m \times m$ solve of
+    $(G M^{-1} G^\top)\mu = G v(p) + \partial g/\partial t$ by unrolled elimination
+    (no LAPACK call in the step), with $M^{-1}G^\top$ from the velocity's derivative
+    along the rows of $G$. On a group $G$ is left-trivialised and $p$ the body-frame
+    momentum. Newton's method on $\mu$ reaches the same root in one iteration, but
+    puts a loop and its termination in every step's program (the four-bar's, whose
+    mass depends on its angles, too).
+
+    $\mu$ is differentiated as the root of the hidden constraint
+    (`known_root`), as Newton's was: differentiating the elimination itself made
+    the four-bar's gradient programs larger to compile (its `ReversibleAdjoint`
+    gradient 7.1-8.5 s against 5.2-5.7 s)."""
     flat_p, unravel = jax.flatten_util.ravel_pytree(p)
-    inverse_mass = 1 / _flat(constant_mass(lagrangian, p))
-    weighted = jacobian * inverse_mass[None, :]
+
+    def flat_velocity(x):
+        v, result = velocity(unravel(x))
+        return _flat(v), result
+
+    def residual(mu):
+        return hidden_constraint(
+            jacobian, velocity(unravel(flat_p - product(jacobian.T, mu)))[0], rate
+        )
+
+    v, along, result = jax.linearize(flat_velocity, flat_p, has_aux=True)
+    weighted = jax.vmap(along)(jacobian)  # Row j: M^-1 G^T e_j.
     mu, ratio = _reduced_solve(
-        product(weighted, jacobian.T), product(weighted, flat_p) + rate
+        product(weighted, jacobian.T), product(jacobian, v) + rate
     )
+    mu = known_root(residual, jax.lax.stop_gradient(mu)).value
     # NaN pivots (a NaN state) are not a singular matrix: the step's check of the
     # new state reports them.
     regular = ~(ratio <= singular_threshold(jacobian.shape[0], jacobian.dtype))
-    result = dfx.RESULTS.where(regular, dfx.RESULTS.successful, dfx.RESULTS.singular)
+    result = dfx.RESULTS.where(
+        regular | (result != dfx.RESULTS.successful), result, dfx.RESULTS.singular
+    )
     impulse = -product(jacobian.T, mu)
     return Projected(unravel(flat_p + impulse), unravel(impulse), mu, result)
+
+
+def project_constant_mass(lagrangian, jacobian: Array, rate: Array, p: P) -> Projected:
+    """`project_affine` for a Lagrangian that declares a constant mass
+    (`constant_mass`), $v = M^{-1}p$."""
+    inverse_mass = jtu.tree_map(lambda m: 1 / m, constant_mass(lagrangian, p))
+    return project_affine(
+        jacobian,
+        rate,
+        p,
+        lambda p: (jtu.tree_map(jnp.multiply, inverse_mass, p), dfx.RESULTS.successful),
+    )
 
 
 # One compiled program, like `velocity` and `energy`: op by op, its Newton solves,
