@@ -5,8 +5,8 @@ compilation cache.
 Every time is the wall time of a fresh process, as a user starts it:
 
 - `import diffrax`, the reference for start-up;
-- `diffrax-vi --help` and a refused option (`--scene nope`), which the entry point
-  answers without importing JAX;
+- `diffrax-vi --help` and two refused options (`--scene nope`, and an `--out`
+  folder that holds a file), which the entry point answers without importing JAX;
 - the main job with `--no-cache`, then on an empty cache (cold), then again on that
   cache (warm): the cache keeps each traced program (`jax.export`) and what XLA
   compiled from it, and the warm run reads both back instead of tracing and
@@ -47,7 +47,7 @@ BIN = pathlib.Path(sys.executable).parent
 # or reads back, compiles, and runs the tracked solves, which are not timed).
 PHASES = """
 import sys, time
-from _diffrax_vi_cli import main
+from _diffrax_vi_cli import exit_now, main
 from diffrax_vi.study import _run
 
 spans = []
@@ -63,14 +63,17 @@ def timed(f):
 
 
 _run.prepare, _run.track = timed(_run.prepare), timed(_run.track)
-main(sys.argv[1:], own_process=True)  # As the console script runs it.
+code = main(sys.argv[1:], own_process=True)  # As the console script runs it,
 print(max(e for _, e in spans) - min(s for s, _ in spans))
+exit_now(code)  # and ends.
 """
 
 
-def seconds(command: list[str], env: dict | None = None, cwd=None, out=None) -> float:
-    """A fresh process's wall time; the last line of its output, a number, is
-    appended to `out` if given."""
+def seconds(
+    command: list[str], env: dict | None = None, cwd=None, out=None, code: int = 0
+) -> float:
+    """A fresh process's wall time, checked to exit with `code`; the last line of
+    its output, a number, is appended to `out` if given."""
     start = time.perf_counter()
     done = subprocess.run(
         command,
@@ -83,10 +86,7 @@ def seconds(command: list[str], env: dict | None = None, cwd=None, out=None) -> 
         cwd=cwd,
     )
     elapsed = time.perf_counter() - start
-    if command[-1] == "nope":
-        assert done.returncode == 2, done.stderr
-    else:
-        assert done.returncode == 0, done.stderr[-2000:]
+    assert done.returncode == code, done.stderr[-2000:]
     if out is not None:
         out.append(float(done.stdout.strip().splitlines()[-1]))
     return elapsed
@@ -105,7 +105,11 @@ def main() -> None:
             cache = {"XDG_CACHE_HOME": str(pathlib.Path(work) / "cache")}
             times["import"].append(seconds([sys.executable, "-c", "import diffrax"]))
             times["help"].append(seconds([cli, "--help"]))
-            times["refused"].append(seconds([cli, "drift", "--scene", "nope"]))
+            times["refused"].append(seconds([cli, "drift", "--scene", "nope"], code=2))
+            full = pathlib.Path(work) / "full"
+            full.mkdir()
+            (full / "notes.txt").write_text("mine")
+            times["full"].append(seconds([*job, str(full)], code=2))
             times["uncached"].append(
                 seconds([*job, "no-cache", "--no-cache"], cache, work)
             )
@@ -119,8 +123,9 @@ def main() -> None:
                     prepared,
                 )
             )
-    import_diffrax, help_, refused, uncached, cold, warm = (
-        min(times[k]) for k in ("import", "help", "refused", "uncached", "cold", "warm")
+    import_diffrax, help_, refused, full, uncached, cold, warm = (
+        min(times[k])
+        for k in ("import", "help", "refused", "full", "uncached", "cold", "warm")
     )
     # The fastest second warm run, and the span within it.
     warm_again, span = min(zip(times["warm_again"], prepared))
@@ -137,6 +142,10 @@ def main() -> None:
     print(
         f"diffrax-vi drift --scene nope       {refused:7.2f}"
         f"   {refused / import_diffrax:.2f}x import diffrax"
+    )
+    print(
+        f"diffrax-vi drift --out <not empty> {full:7.2f}"
+        f"   {full / import_diffrax:.2f}x import diffrax"
     )
     print(f"main job, --no-cache                {uncached:7.2f}")
     print(f"main job, cold cache                {cold:7.2f}")
@@ -155,7 +164,7 @@ def main() -> None:
         f"   {floor / cold:.2f}x the cold run"
     )
     print(
-        "targets: --help and a refused option <= 0.5x import diffrax; the main "
+        "targets: --help and refused options <= 0.5x import diffrax; the main "
         "job <= 10 s cold, a warm run <= 0.35x the cold run"
     )
 

@@ -544,6 +544,60 @@ def test_backward_steps_leave_out_the_dense_output_nothing_interpolates():
     assert traced(dfx.SaveAt(ts=jnp.linspace(0.0, 1.0, 5))) == [False, True, True]
 
 
+def test_the_backward_pass_checks_the_start_once():
+    """The inverse steps start from the forward solve's end, which its steps reached
+    from a checked start: `resume` does not check it again. The four-bar's
+    reversible gradient holds the start's checks (the extreme eigenvalues of its
+    mass matrix, the rank of its constraint Jacobian) once, as its forward solve
+    does, not a second time at the end; and `resume` gives the state `init` does
+    wherever `init`'s checks pass (implicit steps with and without constraints, a
+    composition of them), to round-off."""
+    scene = dvi.scenes.four_bar()
+    term = scene.term()
+
+    def solve(y0, adjoint):
+        return dfx.diffeqsolve(
+            term,
+            dvi.MidpointVI(),
+            0.0,
+            1.0,
+            0.1,
+            y0,
+            saveat=dfx.SaveAt(t1=True),
+            adjoint=adjoint,
+        ).ys
+
+    def lapack(program):
+        text = str(program)
+        return text.count("eigh["), text.count("svd[")
+
+    forward = jax.make_jaxpr(lambda y0: solve(y0, dfx.RecursiveCheckpointAdjoint()))
+    gradient = jax.make_jaxpr(
+        jax.grad(lambda y0: jnp.sum(solve(y0, dvi.ReversibleAdjoint())[0]))
+    )
+    assert lapack(forward(scene.y0)) == lapack(gradient(scene.y0)) == (1, 1)
+
+    rod = dvi.scenes.cartesian_pendulum()
+    cases = [
+        (term, scene.y0, None, dvi.MidpointVI()),
+        (term, scene.y0, None, dvi.Composition(dvi.MidpointVI(), "yoshida4")),
+        (dvi.LagrangianTerm(KEPLER), KEPLER_Y0, 1.0, dvi.TrapezoidalVI()),
+        (rod.term(), rod.y0, None, dvi.MidpointVI()),
+    ]
+    for term_, y0, args, solver in cases:
+
+        @jax.jit
+        def both(y0):
+            state = solver.init(term_, 0.0, 0.1, y0, args)
+            return state, solver.resume(term_, 0.0, 0.1, y0, args, state)
+
+        state, resumed = both(y0)
+        assert jax.tree.structure(resumed) == jax.tree.structure(state)
+        for a, b in zip(jax.tree.leaves(resumed), jax.tree.leaves(state)):
+            # The same velocity, computed in another fusion: to round-off.
+            assert jnp.allclose(a, b, rtol=1e-15, atol=0, equal_nan=True), (a, b)
+
+
 def _final_gradient(scene, solver, adjoint, forced):
     """d/dy0 of a scalar of the scene's final state after 60 steps, with a force of
     time and position where `forced`."""

@@ -455,7 +455,11 @@ def _loop_reversible_bwd(
     # The inverse step's first state, and whether the forward steps take the roots
     # the inverse steps found (`_takes_inverse_roots`).
     last = jnp.maximum(num_steps - 1, 0)
-    back_state = solver.init(terms, times[num_steps], times[last], y_final, args)
+    # Its start is the forward solve's end, which the forward steps reached from a
+    # checked start: `resume` does not check it again.
+    back_state = solver.resume(
+        terms, times[num_steps], times[last], y_final, args, solver_state
+    )
     takes_roots = _takes_inverse_roots(solver, terms, back_state, self.checkpoint_every)
 
     # Step k of the forward solve (from times[k - 1]) as a function of what it

@@ -78,6 +78,22 @@ class AbstractComposableSolver(dfx.AbstractSolver, **_markers):
 
     symmetric: AbstractVar[bool]
 
+    def resume(
+        self,
+        terms: PyTree[dfx.AbstractTerm],
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: PyTree,
+        args: Args,
+        solver_state: PyTree,
+    ) -> PyTree:
+        """The state to step on from `y0`, a state that this solver's own steps
+        reached from a start that `init` checked, ending in `solver_state`: what
+        `init(terms, t0, t1, y0, args)` returns, without checking that start again
+        where the solver can (`ReversibleAdjoint`'s inverse steps start so from the
+        end of the forward solve). By default `init`'s."""
+        return self.init(terms, t0, t1, y0, args)
+
     @abc.abstractmethod
     def fractional_step(
         self,
@@ -416,6 +432,12 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
     def method_init(self, step: StepInputs) -> PyTree:
         """The method's state before its first step (a history, a Newton guess)."""
 
+    def method_resume(self, step: StepInputs, state: PyTree) -> PyTree:
+        """The method's state to step on from `step`'s start, which its own steps
+        reached, ending in the method state `state` (see `resume`): by default
+        `method_init`'s, with its checks of the start."""
+        return self.method_init(step)
+
     @abc.abstractmethod
     def method_step(
         self, step: StepInputs, state: PyTree, made_jump: Bool[ArrayLike, ""]
@@ -431,6 +453,27 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
         y0: PyTree,
         args: Args,
     ) -> VIState:
+        step, state = self._start(terms, t0, t1, y0, args, self.method_init)
+        state = check_on_space(step.term.lagrangian.space, y0[0], state)
+        return check_times(t0, t1, state)
+
+    def resume(
+        self,
+        terms: dfx.AbstractTerm,
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: PyTree,
+        args: Args,
+        solver_state: VIState,
+    ) -> VIState:
+        method_state = solver_state.method
+        return self._start(
+            terms, t0, t1, y0, args, lambda s: self.method_resume(s, method_state)
+        )[1]
+
+    def _start(self, terms, t0, t1, y0, args, method_state) -> tuple:
+        """The inputs of a step from `y0`, and the solver state before it, whose
+        method's state `method_state(step)` gives."""
         compensation = initial_compensation(y0, self.compensated)
         step = step_inputs(
             terms,
@@ -443,9 +486,7 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
             type(self).__name__,
         )
         work = None if step.term.force is None else jnp.zeros((), step.dtype)
-        state = VIState(self.method_init(step), compensation, work)
-        state = check_on_space(step.term.lagrangian.space, y0[0], state)
-        return check_times(t0, t1, state)
+        return step, VIState(method_state(step), compensation, work)
 
     def step(
         self,

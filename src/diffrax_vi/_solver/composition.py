@@ -320,11 +320,27 @@ class Composition(AbstractSymplecticSolver, AbstractComposableSolver):
         y0: PyTree,
         args: Args,
     ) -> PyTree:
+        return self.base.init(terms, t0, self._first_end(t0, t1), y0, args)
+
+    def resume(
+        self,
+        terms: PyTree[dfx.AbstractTerm],
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: PyTree,
+        args: Args,
+        solver_state: PyTree,
+    ) -> PyTree:
+        return self.base.resume(
+            terms, t0, self._first_end(t0, t1), y0, args, solver_state
+        )
+
+    def _first_end(self, t0: RealScalarLike, t1: RealScalarLike) -> RealScalarLike:
+        """The end of the first substep of a step from `t0` to `t1`. Python floats
+        are weakly typed: they keep float32 times float32. Times known at trace time
+        stay known, for the base's check of them."""
         first = float(self.scheme.coefficients[0])
-        # Python floats are weakly typed: they keep float32 times float32. Times known
-        # at trace time stay known, for the base's check of them.
-        t_first = at_trace_time(lambda a, b: a + first * (b - a), t0, t1)
-        return self.base.init(terms, t0, t_first, y0, args)
+        return at_trace_time(lambda a, b: a + first * (b - a), t0, t1)
 
     def step(
         self,

@@ -27,6 +27,7 @@ from .constrained import constrained_step, init_constrained
 from .unknowns import (
     init_unknowns,
     inverse_root,
+    resume_unknowns,
     root_finding,
     solve_step,
     StepEquations,
@@ -101,6 +102,14 @@ class AbstractImplicitVI(
             )
         return init_unknowns(
             step, lambda v: self.stage_guess(step, v), root_finding(self.root_finder)
+        )
+
+    def method_resume(self, step: StepInputs, state: Unknowns) -> Unknowns:
+        return resume_unknowns(
+            step,
+            lambda v: self.stage_guess(step, v),
+            root_finding(self.root_finder),
+            state,
         )
 
     def method_step(

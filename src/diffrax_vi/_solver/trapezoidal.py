@@ -34,6 +34,7 @@ from .stormer_verlet import kick_drift_kick, poisoned_force
 from .unknowns import (
     init_unknowns,
     inverse_root,
+    resume_unknowns,
     root_finding,
     solve_step,
     StepEquations,
@@ -147,6 +148,11 @@ class TrapezoidalVI(
         if step.term.constraint is not None:
             return init_constrained(step, lambda v: v, root_finding(self.root_finder))
         return init_unknowns(step, lambda v: v, root_finding(self.root_finder))
+
+    def method_resume(self, step: StepInputs, state: PyTree) -> PyTree:
+        if not isinstance(state, Unknowns):  # Explicit, or RATTLE.
+            return self.method_init(step)
+        return resume_unknowns(step, lambda v: v, root_finding(self.root_finder), state)
 
     def method_step(
         self, step: StepInputs, state: PyTree, made_jump: Bool[ArrayLike, ""]

@@ -351,6 +351,41 @@ def init_unknowns(
     return Unknowns(guess, guess, carry, start.positive, start.result)
 
 
+def resume_unknowns(
+    step: StepInputs,
+    stage_guess,
+    root_finding: AbstractStepRootFinding,
+    state: Unknowns,
+) -> Unknowns:
+    """`init_unknowns`'s state (`init_constrained`'s, where `state` has
+    multipliers) at a start that the method's own steps reached, ending in `state`:
+    the guess from the velocity there, and what the checks of the first start found
+    (the Lagrangian's definiteness, how the start ended) carried over from `state`
+    instead of checking again. A constrained step's multipliers start from zero, as
+    at the first start."""
+    v0, _ = inverse_legendre(
+        step.term.lagrangian,
+        step.t0,
+        (step.q0, step.p0),
+        step.args,
+        None,
+        check_promise=False,
+    )
+    guess = stage_guess(v0)
+    projection = state.projection
+    if projection is not None:
+        projection = jnp.zeros_like(projection)
+        guess = (guess, projection)
+    return Unknowns(
+        guess,
+        guess,
+        root_finding.carry_init(guess),
+        state.positive,
+        state.start,
+        projection,
+    )
+
+
 def _curvature(residual, w, d) -> Array:
     """`d . J(w) d` for the Jacobian `J` of `residual` at `w`."""
     _, jd = jax.jvp(lambda x: residual(x)[0], (w,), (d,))
