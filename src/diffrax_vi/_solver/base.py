@@ -468,7 +468,7 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
     ) -> VIState:
         """`AbstractComposableSolver.resume`: the method's state from
         `method_resume`, without `init`'s checks that the start lies on its group
-        and that the times are finite."""
+        and that its first step is finite."""
         method_state = solver_state.method
         return self._start(
             terms, t0, t1, y0, args, lambda s: self.method_resume(s, method_state)
