@@ -15,8 +15,8 @@ iteration with a Newton fallback, and the difference is what that fallback costs
 first call. A trivial program is compiled first, so that the backend's start-up is
 not charged to the case.
 
-Run: `python benchmarks/first_call.py [--processes 3]` (recorded:
-`results/first_call_cpu.txt`).
+Run: `python benchmarks/first_call.py [--processes 3] [--scenes kepler,four_bar]`
+(recorded: `results/first_call_cpu.txt`).
 """
 
 import argparse
@@ -105,7 +105,16 @@ def measure(scene: str, solver: str, adjoint: str, processes: int) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--processes", type=int, default=3)
-    processes = parser.parse_args().processes
+    parser.add_argument(
+        "--scenes",
+        default=",".join(name for name, _ in SCENES),
+        help="comma-separated scenes to measure (default: all)",
+    )
+    options = parser.parse_args()
+    processes, chosen = options.processes, options.scenes.split(",")
+    unknown = set(chosen) - {name for name, _ in SCENES}
+    if unknown:
+        parser.error(f"unknown scenes: {', '.join(sorted(unknown))}")
     print(
         "First call: trace, lower and compile, seconds; each case the fastest of "
         f"{processes} fresh processes"
@@ -114,7 +123,9 @@ def main() -> None:
         f"{'scene':<21} {'solver':<22} {'trace':>6} {'lower':>6} {'compile':>7} "
         f"{'total':>6}  vs Tsit5 (trace, total)  grad/forward (checkpoint, reversible)"
     )
-    for scene, solvers in SCENES:
+    for scene, solvers in [
+        (name, solvers) for name, solvers in SCENES if name in chosen
+    ]:
         tsit5 = measure(scene, "Tsit5", "none", processes)
         t_total = sum(tsit5.values())
         t_grad = sum(measure(scene, "Tsit5", "checkpoint", processes).values())
