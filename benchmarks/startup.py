@@ -144,7 +144,7 @@ def main() -> None:
         f"   {refused / import_diffrax:.2f}x import diffrax"
     )
     print(
-        f"diffrax-vi drift --out <not empty> {full:7.2f}"
+        f"diffrax-vi drift --out <not empty>  {full:7.2f}"
         f"   {full / import_diffrax:.2f}x import diffrax"
     )
     print(f"main job, --no-cache                {uncached:7.2f}")
