@@ -317,7 +317,7 @@ def project_affine(
     mu, ratio = _reduced_solve(
         product(weighted, jacobian.T), product(jacobian, v) + rate
     )
-    mu = known_root(residual, jax.lax.stop_gradient(mu)).value
+    mu = known_root(residual, mu).value
     # NaN pivots (a NaN state) are not a singular matrix: the step's check of the
     # new state reports them.
     regular = ~(ratio <= singular_threshold(jacobian.shape[0], jacobian.dtype))
