@@ -3,7 +3,9 @@ term, and each gradient against its forward solve.
 
 Every case runs in a fresh process (as a user's first call does, with no trace
 cached by an earlier case), the fastest of `--processes` (3) by its total, as a
-single process's compile time moves by up to half from one to the next:
+single process's compile time moves by up to half from one to the next; a scene's
+cases take turns, one process each per round, so that its ratios compare runs made
+in the same minutes:
 `jax.jit(solve).trace(y0)` is timed as the tracing,
 `.lower()` and `.compile()` of the traced program as the compilation. A solve is a
 `diffeqsolve` over 100 steps saving only `t1`; a gradient is `jax.grad` of the sum
@@ -36,7 +38,7 @@ SCENES = [
 ]
 
 CASE = """
-import json, sys, time
+import json, re, sys, time
 import diffrax as dfx
 import jax
 import jax.numpy as jnp
@@ -75,31 +77,54 @@ traced = jax.jit(fn).trace(scene.y0)
 lowered_at = time.perf_counter()
 lowered = traced.lower()
 compiled_at = time.perf_counter()
-lowered.compile()
+compiled = lowered.compile()
 end = time.perf_counter()
+# The optimised program's size, and the fused kernels outside every loop: XLA on CPU
+# compiles each of those on its own (5 to 25 ms each on this machine), where a loop
+# compiled whole is one function.
+text = compiled.as_text()
+entry = text[text.index("ENTRY"):]
+entry = entry[:entry.index("\\n}")]
 print(json.dumps(dict(trace=lowered_at - start, lower=compiled_at - lowered_at,
-                      compile=end - compiled_at)))
+                      compile=end - compiled_at,
+                      instructions=len(re.findall(r"^\\s+\\S+ = ", text, re.M)),
+                      kernels=entry.count(" fusion("))))
 """
+
+TIMES = ("trace", "lower", "compile")
+
+
+def total(run: dict) -> float:
+    """A first call's seconds: tracing, lowering and compiling."""
+    return sum(run[k] for k in TIMES)
+
+
+def run_once(case: str, argv: list[str]) -> dict:
+    """The times `case` prints last (a JSON object), run as a script with `argv` in
+    a fresh process."""
+    done = subprocess.run(
+        [sys.executable, "-c", case, *argv], capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
 
 
 def fastest(case: str, argv: list[str], processes: int, key) -> dict:
-    """The times `case` prints last (a JSON object), run as a script with `argv` in
-    `processes` fresh processes: the fastest run by `key`."""
-    runs = []
+    """`run_once` of `case` in `processes` fresh processes: the fastest run by
+    `key`."""
+    return min((run_once(case, argv) for _ in range(processes)), key=key)
+
+
+def measure_scene(scene: str, cases: list[tuple[str, str]], processes: int) -> dict:
+    """Each `(solver, adjoint)` of `cases` on `scene`, the fastest of `processes`
+    fresh processes (by its total). The cases take turns, one process each per
+    round, so that the ratios between them compare runs made in the same minutes,
+    on a machine whose speed drifts from one minute to the next."""
+    runs = {case: [] for case in cases}
     for _ in range(processes):
-        done = subprocess.run(
-            [sys.executable, "-c", case, *argv], capture_output=True, text=True
-        )
-        assert done.returncode == 0, done.stderr[-2000:]
-        runs.append(json.loads(done.stdout.strip().splitlines()[-1]))
-    return min(runs, key=key)
-
-
-def measure(scene: str, solver: str, adjoint: str, processes: int) -> dict:
-    """The fastest of `processes` fresh processes' first calls (by their total)."""
-    return fastest(
-        CASE, [scene, solver, adjoint], processes, lambda run: sum(run.values())
-    )
+        for solver, adjoint in cases:
+            runs[solver, adjoint].append(run_once(CASE, [scene, solver, adjoint]))
+    return {case: min(found, key=total) for case, found in runs.items()}
 
 
 def main() -> None:
@@ -117,35 +142,39 @@ def main() -> None:
         parser.error(f"unknown scenes: {', '.join(sorted(unknown))}")
     print(
         "First call: trace, lower and compile, seconds; each case the fastest of "
-        f"{processes} fresh processes"
+        f"{processes} fresh processes, a scene's cases taking turns"
     )
     print(
         f"{'scene':<21} {'solver':<22} {'trace':>6} {'lower':>6} {'compile':>7} "
         f"{'total':>6}  vs Tsit5 (trace, total)  grad/forward (checkpoint, reversible)"
+        "  optimised instructions, kernels outside loops"
     )
     for scene, solvers in [
         (name, solvers) for name, solvers in SCENES if name in chosen
     ]:
-        tsit5 = measure(scene, "Tsit5", "none", processes)
-        t_total = sum(tsit5.values())
-        t_grad = sum(measure(scene, "Tsit5", "checkpoint", processes).values())
+        adjoints = ("none", "checkpoint", "reversible")
+        cases = [("Tsit5", "none"), ("Tsit5", "checkpoint")]
+        cases += [(solver, a) for solver in solvers for a in adjoints]
+        runs = measure_scene(scene, cases, processes)
+        tsit5 = runs["Tsit5", "none"]
+        t_total = total(tsit5)
+        t_grad = total(runs["Tsit5", "checkpoint"])
         print(
             f"{scene:<21} {'Tsit5':<22} {tsit5['trace']:6.2f} {tsit5['lower']:6.2f} "
             f"{tsit5['compile']:7.2f} {t_total:6.2f}"
             f"{'':27}{t_grad / t_total:5.2f}x"
+            f"{'':18}{tsit5['instructions']:6d} {tsit5['kernels']:3d}"
         )
         for solver in solvers:
-            ours = measure(scene, solver, "none", processes)
-            total = sum(ours.values())
-            grads = [
-                sum(measure(scene, solver, a, processes).values()) / total
-                for a in ("checkpoint", "reversible")
-            ]
+            ours = runs[solver, "none"]
+            ours_total = total(ours)
+            grads = [total(runs[solver, a]) / ours_total for a in adjoints[1:]]
             print(
                 f"{scene:<21} {solver:<22} {ours['trace']:6.2f} {ours['lower']:6.2f} "
-                f"{ours['compile']:7.2f} {total:6.2f}  "
-                f"{ours['trace'] / tsit5['trace']:5.2f}x {total / t_total:5.2f}x"
+                f"{ours['compile']:7.2f} {ours_total:6.2f}  "
+                f"{ours['trace'] / tsit5['trace']:5.2f}x {ours_total / t_total:5.2f}x"
                 f"            {grads[0]:5.2f}x {grads[1]:5.2f}x"
+                f"  {ours['instructions']:6d} {ours['kernels']:3d}"
             )
     print(
         "targets: a variational solve's trace + compile <= 1.5x Tsit5's on the same "
