@@ -8,6 +8,7 @@ import equinox as eqx
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 
@@ -551,7 +552,7 @@ def test_the_backward_pass_checks_the_start_once():
     mass matrix, the rank of its constraint Jacobian) once, as its forward solve
     does, not a second time at the end; and `resume` gives the state `init` does
     wherever `init`'s checks pass (implicit steps with and without constraints, a
-    composition of them), to round-off."""
+    composition of them), to round-off of its largest entry."""
     scene = dvi.scenes.four_bar()
     term = scene.term()
 
@@ -594,8 +595,17 @@ def test_the_backward_pass_checks_the_start_once():
         state, resumed = both(y0)
         assert jax.tree.structure(resumed) == jax.tree.structure(state)
         for a, b in zip(jax.tree.leaves(resumed), jax.tree.leaves(state)):
-            # The same velocity, computed in another fusion: to round-off.
-            assert jnp.allclose(a, b, rtol=1e-15, atol=0, equal_nan=True), (a, b)
+            if not jnp.issubdtype(b.dtype, jnp.floating):
+                assert jnp.array_equal(a, b)
+                continue
+            # The same velocity, solved in another way: `init` by the
+            # eigendecomposition that checks d2L/dv2 (the four-bar's), `resume` by
+            # an elimination. Both are backward stable and the mass matrices are
+            # well conditioned (the four-bar's: 2.2 in units of its diagonal), so
+            # they agree to a few ulps of the largest entry.
+            size = jnp.max(jnp.abs(jnp.where(jnp.isfinite(b), b, 0)), initial=0)
+            eps = jnp.finfo(b.dtype).eps
+            np.testing.assert_allclose(a, b, rtol=0, atol=8 * eps * size)
 
 
 def _final_gradient(scene, solver, adjoint, forced):

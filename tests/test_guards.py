@@ -232,8 +232,9 @@ def test_the_start_checks_spectrum_does_not_see_the_units(n):
     """`symmetric_extremes`, dense (5) and by Lanczos (80): a positive definite
     matrix and the same in other units of each coordinate, `C A C` with `C`
     alternating 1e-6 and 1e6 (its eigenvalues 1e24 apart), give the same extremes;
-    a singular one (dense) stays singular in either units."""
-    from diffrax_vi._spectrum import symmetric_extremes
+    a singular one (dense) stays singular in either units. The dense solve by the
+    same eigendecomposition (`symmetric_solve`) equals NumPy's in either units."""
+    from diffrax_vi._spectrum import symmetric_extremes, symmetric_solve
 
     i = jnp.arange(n, dtype=float)
     off = 0.3 * jnp.cos(i[:-1])
@@ -249,6 +250,13 @@ def test_the_start_checks_spectrum_does_not_see_the_units(n):
         smallest, largest, least = (float(x) for x in scaled)
         assert (least > n * 2.2e-16 * max(-smallest, largest)) == regular
         assert (smallest > 0) == regular
+    if n <= 64:
+        # The solve by the same eigendecomposition: (C A C)^-1 C b = C^-1 A^-1 b.
+        b = jnp.sin(2.1 * i)
+        x, extremes = symmetric_solve(c[:, None] * a * c[None, :], c * b)
+        np.testing.assert_allclose(c * x, np.linalg.solve(a, b), rtol=1e-12)
+        natural = symmetric_extremes(lambda x: a @ x, n, float)
+        np.testing.assert_allclose(extremes, natural, rtol=1e-12, atol=1e-14)
 
 
 def test_linearized_guard_is_unit_free():

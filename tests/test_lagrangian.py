@@ -2,6 +2,7 @@ import diffrax as dfx
 import diffrax_vi as dvi
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 from .helpers import (
@@ -44,6 +45,33 @@ def test_velocity_quadratic_is_exact_single_solve():
     v_back, result = dvi.velocity(DoublePendulum(), 0.0, (q, p))
     assert result == dfx.RESULTS.successful
     assert jnp.allclose(v_back, v, rtol=1e-14)
+
+
+def test_the_start_of_a_quadratic_lagrangian_is_one_eigendecomposition():
+    """A solve's start for a Lagrangian marked quadratic in `v` takes the velocity
+    and the extremes of d2L/dv2 it checks from one matrix and one
+    eigendecomposition (`explicit_start`): the double pendulum's start velocity is
+    M(q)^-1 p to round-off, its extremes are those of M in units of its diagonal
+    (NumPy's), and the start's program holds one `eigh` and no elimination (the
+    unrolled LU writes its rows by index: scatters)."""
+    from diffrax_vi._lagrangian import explicit_start
+
+    q, v = jnp.array([0.3, -1.1]), jnp.array([0.7, 0.2])
+    mass = _dp_mass_matrix(q)
+    y0 = (q, mass @ v)
+    v0, result, extremes = jax.jit(
+        lambda y: explicit_start(DoublePendulum(), 0.0, y, None)
+    )(y0)
+    assert result == dfx.RESULTS.successful
+    assert jnp.allclose(v0, v, rtol=1e-14, atol=0)
+    d = 1 / np.sqrt(np.diag(mass))
+    eigs = np.linalg.eigvalsh(d[:, None] * np.asarray(mass) * d[None, :])
+    np.testing.assert_allclose(extremes, (eigs[0], eigs[-1], eigs[0]), rtol=1e-14)
+
+    term = dvi.LagrangianTerm(DoublePendulum())
+    for solver in (dvi.MidpointVI(), dvi.TrapezoidalVI()):
+        start = str(jax.make_jaxpr(lambda y: solver.init(term, 0.0, 0.1, y, None))(y0))
+        assert start.count("eigh[") == 1 and "scatter" not in start
 
 
 def test_velocity_general_newton():

@@ -26,6 +26,7 @@ from ._private_api import unvmap_any
 from ._root_finders import Newton, solve
 from ._so3 import SO3
 from ._space import AbstractSpace, Euclidean, is_euclidean, left_gradient, tangent
+from ._spectrum import Extremes, invertible, symmetric_solve
 from ._tolerance import (
     AFFINE_MAX_STEPS,
     KRYLOV_FLOOR,
@@ -681,73 +682,109 @@ def inverse_legendre(
         )
         return v, result_or_nonfinite(v, p, result)
 
-    residual = legendre_residual(lagrangian, t, q, p, args)
     n = sum(jnp.size(x) for x in jtu.tree_leaves(p))
     dtype = state_dtype(p)
-    zeros = jtu.tree_map(jnp.zeros_like, p)
     if velocity_is_explicit(lagrangian, p):
-        # `dL/dv` is affine in `v`: one solve with `M = d2L/dv2` from v = 0, by
-        # unrolled elimination. Differentiated (RATTLE's projection differentiates
-        # the velocity), lineax's solve would check its tangent solve and raise on
-        # a NaN state, where this returns NaN for the step to report.
-        flat_zeros, unravel = jax.flatten_util.ravel_pytree(zeros)
+        # By unrolled elimination. Differentiated (RATTLE's projection
+        # differentiates the velocity), lineax's solve would check its tangent solve
+        # and raise on a NaN state, where this returns NaN for the step to report.
+        def eliminate(matrix, b):
+            x, ratio = unrolled_lu_solve(matrix, b)
+            # NaN pivots (a NaN Lagrangian) are not a singular one: `nonfinite`.
+            return x, ~(ratio <= singular_threshold(n, dtype)), None
 
-        def flat_residual(x):
-            return jax.flatten_util.ravel_pytree(residual(unravel(x))[0])[0]
-
-        r0 = flat_residual(flat_zeros)
-        x, ratio = unrolled_lu_solve(jax.jacfwd(flat_residual)(flat_zeros), -r0)
-        # NaN pivots (a NaN Lagrangian) are not a singular one: `nonfinite` below.
-        regular = ~(ratio <= singular_threshold(n, dtype))
-        # The marker is a promise: if `L` is not quadratic in `v` after all, the one
-        # solve is wrong, and the residual at its answer says so.
-        v = unravel(x)
-        if check_promise:
-            v = eqx.error_if(
-                v,
-                regular & (scaled_norm(*residual(v)) > newton_tolerance(dtype)),
-                NOT_QUADRATIC,
-            )
-        result = dfx.RESULTS.where(
-            regular, dfx.RESULTS.successful, dfx.RESULTS.singular
+        v, result, _ = _explicit_velocity(
+            lagrangian, t, q, p, args, check_promise, eliminate
         )
+        return v, result
+
+    residual = legendre_residual(lagrangian, t, q, p, args)
+    zeros = jtu.tree_map(jnp.zeros_like, p)
+
+    def newton(v_guess):
+        solved = solve(
+            residual,
+            v_guess,
+            _LEGENDRE_NEWTON,
+            max_steps=LEGENDRE_MAX_STEPS,
+            tags=frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag}),
+        )
+        regular = ~(solved.pivot_ratio <= singular_threshold(n, dtype))
+        converged = solved.result == dfx.RESULTS.successful
+        return solved.value, dfx.RESULTS.where(
+            ~regular,
+            dfx.RESULTS.singular,
+            dfx.RESULTS.where(converged, dfx.RESULTS.successful, dfx.RESULTS.breakdown),
+        )
+
+    guess = zeros if v_guess is None else v_guess
+    if quadratic_in_velocity(lagrangian, t, q, args):
+        # One solve (Newton's first iterate, to round-off) without its two
+        # evaluations of the residual; Newton from there where it fails. Up to
+        # 16 degrees of freedom a mass that is not diagonal goes to Newton's
+        # dense LU, whose pivots tell a singular one.
+        krylov = not newton_is_dense(n)
+        v, result = _affine_velocity(lagrangian, t, q, p, args, krylov)
+        failed = result == dfx.RESULTS.breakdown
+        v_newton, result_newton = lax.cond(
+            unvmap_any(failed), lambda: newton(guess), lambda: (v, result)
+        )
+        v = jtu.tree_map(lambda a, b: jnp.where(failed, b, a), v, v_newton)
+        result = dfx.RESULTS.where(failed, result_newton, result)
     else:
-
-        def newton(v_guess):
-            solved = solve(
-                residual,
-                v_guess,
-                _LEGENDRE_NEWTON,
-                max_steps=LEGENDRE_MAX_STEPS,
-                tags=frozenset({lx.symmetric_tag, lx.positive_semidefinite_tag}),
-            )
-            regular = ~(solved.pivot_ratio <= singular_threshold(n, dtype))
-            converged = solved.result == dfx.RESULTS.successful
-            return solved.value, dfx.RESULTS.where(
-                ~regular,
-                dfx.RESULTS.singular,
-                dfx.RESULTS.where(
-                    converged, dfx.RESULTS.successful, dfx.RESULTS.breakdown
-                ),
-            )
-
-        guess = zeros if v_guess is None else v_guess
-        if quadratic_in_velocity(lagrangian, t, q, args):
-            # One solve (Newton's first iterate, to round-off) without its two
-            # evaluations of the residual; Newton from there where it fails. Up to
-            # 16 degrees of freedom a mass that is not diagonal goes to Newton's
-            # dense LU, whose pivots tell a singular one.
-            krylov = not newton_is_dense(n)
-            v, result = _affine_velocity(lagrangian, t, q, p, args, krylov)
-            failed = result == dfx.RESULTS.breakdown
-            v_newton, result_newton = lax.cond(
-                unvmap_any(failed), lambda: newton(guess), lambda: (v, result)
-            )
-            v = jtu.tree_map(lambda a, b: jnp.where(failed, b, a), v, v_newton)
-            result = dfx.RESULTS.where(failed, result_newton, result)
-        else:
-            v, result = newton(guess)
+        v, result = newton(guess)
     return v, result_or_nonfinite(v, p, result)
+
+
+def _explicit_velocity(
+    lagrangian: AbstractLagrangian,
+    t: RealScalarLike,
+    q: Q,
+    p: P,
+    args: Args,
+    check_promise: bool,
+    linear_solve: Callable[[Array, Array], tuple[Array, Bool[Array, ""], PyTree]],
+) -> tuple[V, dfx.RESULTS, PyTree]:
+    """The velocity of a Lagrangian marked quadratic in `v` (`velocity_is_explicit`,
+    without a constant mass), whose `dL/dv` is affine in `v`: one solve
+    `linear_solve(M, b) -> (x, regular, extra)` with `M = d2L/dv2` from `v = 0`; its
+    result, and `extra`."""
+    residual = legendre_residual(lagrangian, t, q, p, args)
+    flat_zeros, unravel = jax.flatten_util.ravel_pytree(jtu.tree_map(jnp.zeros_like, p))
+
+    def flat_residual(x):
+        return jax.flatten_util.ravel_pytree(residual(unravel(x))[0])[0]
+
+    r0 = flat_residual(flat_zeros)
+    x, regular, extra = linear_solve(jax.jacfwd(flat_residual)(flat_zeros), -r0)
+    # The marker is a promise: if `L` is not quadratic in `v` after all, the one
+    # solve is wrong, and the residual at its answer says so.
+    v = unravel(x)
+    if check_promise:
+        v = eqx.error_if(
+            v,
+            regular & (scaled_norm(*residual(v)) > newton_tolerance(flat_zeros.dtype)),
+            NOT_QUADRATIC,
+        )
+    result = dfx.RESULTS.where(regular, dfx.RESULTS.successful, dfx.RESULTS.singular)
+    return v, result_or_nonfinite(v, p, result), extra
+
+
+def explicit_start(
+    lagrangian: AbstractLagrangian, t: RealScalarLike, y: tuple[Q, P], args: Args
+) -> tuple[V, dfx.RESULTS, Extremes]:
+    """`inverse_legendre` at a solve's start for a Lagrangian marked quadratic in
+    `v` (`velocity_is_explicit`, without a constant mass), with the
+    `symmetric_extremes` of `d2L/dv2` that the start checks: both from one
+    eigendecomposition of one matrix (`symmetric_solve`), not an elimination and a
+    second matrix. Checks the promise (`check_promise=True`)."""
+    q, p = split_state(y, "y", lagrangian.space)
+
+    def by_spectrum(matrix, b):
+        x, extremes = symmetric_solve(matrix, b)
+        return x, invertible(extremes, b.shape[0], b.dtype), extremes
+
+    return _explicit_velocity(lagrangian, t, q, p, args, True, by_spectrum)
 
 
 def velocity_is_explicit(lagrangian: AbstractLagrangian, p: P) -> bool:

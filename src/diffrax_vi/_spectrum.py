@@ -1,15 +1,19 @@
 """Extreme eigenvalues of a symmetric operator: dense for small systems, Lanczos
-estimates for large ones (whether d2L/dv2 is regular and definite at the start)."""
+estimates for large ones (whether d2L/dv2 is regular and definite at the start), and
+the solve that comes with a small one's eigendecomposition."""
 
 from collections.abc import Callable
 
 import jax
 import jax.lax as lax
 import jax.numpy as jnp
-from jaxtyping import Array, Scalar
+from jaxtyping import Array, Bool, Scalar
 
-from ._linear import unit_scale
-from ._tolerance import DENSE_MAX, LANCZOS_STEPS
+from ._linear import product, unit_scale
+from ._tolerance import DENSE_MAX, LANCZOS_STEPS, singular_threshold
+
+
+Extremes = tuple[Scalar, Scalar, Scalar]
 
 
 def lanczos_extremes(
@@ -43,7 +47,45 @@ def lanczos_extremes(
     return ritz[0], ritz[-1]
 
 
-def symmetric_extremes(matvec: Callable[[Array], Array], n: int, dtype):
+def _unit_scaled(matrix: Array) -> tuple[Array, Array]:
+    """`D A D` for `A = matrix`, symmetrised, with `D = |diag A|^(-1/2)` (a zero
+    entry unscaled), and the diagonal of `D`."""
+    scale = unit_scale(jnp.diagonal(matrix))
+    scaled = scale[:, None] * matrix * scale[None, :]
+    return 0.5 * (scaled + scaled.T), scale
+
+
+def _extremes(eigs: Array) -> Extremes:
+    """The smallest, the largest and the smallest in magnitude of eigenvalues sorted
+    in increasing order."""
+    return eigs[0], eigs[-1], jnp.min(jnp.abs(eigs))
+
+
+def invertible(extremes: Extremes, n: int, dtype) -> Bool[Array, ""]:
+    """Whether an operator on `R^n` with these `symmetric_extremes` is invertible to
+    working precision: its smallest eigenvalue in magnitude above
+    `singular_threshold` of its largest (NaN is not regular)."""
+    smallest, largest, least = extremes
+    size = jnp.maximum(jnp.abs(smallest), jnp.abs(largest))
+    return least > singular_threshold(n, dtype) * size
+
+
+def symmetric_solve(matrix: Array, b: Array) -> tuple[Array, Extremes]:
+    """`matrix^-1 b` for a small symmetric `matrix`, and its `symmetric_extremes`,
+    from one eigendecomposition in units of its diagonal,
+    `D A D = Q diag(lambda) Q^T`: `x = D Q diag(1/lambda) Q^T D b`. Where both are
+    wanted, as at the start of a Lagrangian marked quadratic in `v` (its velocity
+    and the check of `d2L/dv2`), it takes one matrix and one LAPACK call in place of
+    an elimination, a second matrix and the eigenvalues: outside a loop, where XLA
+    on CPU compiles each fused kernel on its own, the double pendulum's start held
+    13 more of them. Not finite where `matrix` is singular."""
+    scaled, scale = _unit_scaled(matrix)
+    eigs, vectors = jnp.linalg.eigh(scaled)
+    x = scale * product(vectors, product(vectors.T, scale * b) / eigs)
+    return x, _extremes(eigs)
+
+
+def symmetric_extremes(matvec: Callable[[Array], Array], n: int, dtype) -> Extremes:
     """The smallest and largest eigenvalues of a symmetric operator `A` on `R^n`
     in units of its diagonal, and the smallest in magnitude: exact from the dense
     matrix up to `DENSE_MAX`, else Lanczos estimates (the smallest magnitude then
@@ -57,11 +99,8 @@ def symmetric_extremes(matvec: Callable[[Array], Array], n: int, dtype):
     estimates it in one, but is wrong by the ratio of two coordinates' units where
     they are coupled)."""
     if n <= DENSE_MAX:
-        matrix = jax.vmap(matvec)(jnp.eye(n, dtype=dtype))
-        scale = unit_scale(jnp.diagonal(matrix))
-        matrix = scale[:, None] * matrix * scale[None, :]
-        eigs = jnp.linalg.eigvalsh(0.5 * (matrix + matrix.T))
-        return eigs[0], eigs[-1], jnp.min(jnp.abs(eigs))
+        scaled, _ = _unit_scaled(jax.vmap(matvec)(jnp.eye(n, dtype=dtype)))
+        return _extremes(jnp.linalg.eigvalsh(scaled))
     rows = jnp.arange(n)
     diagonal = lax.map(lambda i: matvec((rows == i).astype(dtype))[i], rows)
     scale = unit_scale(diagonal)

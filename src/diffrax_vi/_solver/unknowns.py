@@ -21,9 +21,11 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 from .._custom_types import V
 from .._lagrangian import (
     constant_mass,
+    explicit_start,
     inverse_legendre,
     mass_regular,
     momentum,
+    velocity_is_explicit,
 )
 from .._misc import all_finite, tree_size
 from .._private_api import unvmap_any
@@ -36,11 +38,10 @@ from .._root_finders import (
     solve_with_fallback,
     Solved,
 )
-from .._spectrum import symmetric_extremes
+from .._spectrum import invertible, symmetric_extremes
 from .._tolerance import (
     CONSTRAINED_DENSE_MAX,
     FIXED_POINT_STEPS_FACTOR,
-    singular_threshold,
 )
 from .base import MethodStep, StepInputs
 
@@ -69,31 +70,37 @@ def check_start(step: StepInputs) -> Start:
         step.p0,
         step.args,
     )
-    # The velocity alone: Hamilton's equations would also trace the force (and a
-    # constraint's index-reduced forces), which the start does not need.
-    v0, result = inverse_legendre(lagrangian, t, (q, p), args, None, check_promise=True)
     n = tree_size(p)
+    dtype = step.dtype
     mass = constant_mass(lagrangian, p)
     if mass is not None:
         # A declared constant diagonal mass (separable, rigid bodies): its entries
         # are the eigenvalues. No eigensolver, whose LAPACK call is the only one
         # in a rigid body's program (and the first in a process imports SciPy's
         # linalg to lower it: 0.12 s of the free body's first call).
+        v0, result = inverse_legendre(lagrangian, t, (q, p), args, None, True)
         regular = mass_regular(mass, p)
         positive = jnp.all(jnp.stack([jnp.all(m > 0) for m in jtu.tree_leaves(mass)]))
     else:
-        flat_v, unravel = jax.flatten_util.ravel_pytree(v0)
+        if velocity_is_explicit(lagrangian, p):
+            # Marked quadratic: the velocity and the extremes from one matrix.
+            v0, result, extremes = explicit_start(lagrangian, t, (q, p), args)
+        else:
+            # The velocity alone: Hamilton's equations would also trace the force
+            # (and a constraint's index-reduced forces), which the start does not
+            # need.
+            v0, result = inverse_legendre(lagrangian, t, (q, p), args, None, True)
+            flat_v, unravel = jax.flatten_util.ravel_pytree(v0)
 
-        def hessian_vector(u):
-            grad = lambda w: jax.flatten_util.ravel_pytree(
-                momentum(lagrangian, t, q, unravel(w), args)
-            )[0]
-            return jax.jvp(grad, (flat_v,), (u,))[1]
+            def hessian_vector(u):
+                grad = lambda w: jax.flatten_util.ravel_pytree(
+                    momentum(lagrangian, t, q, unravel(w), args)
+                )[0]
+                return jax.jvp(grad, (flat_v,), (u,))[1]
 
-        smallest, largest, least = symmetric_extremes(hessian_vector, n, flat_v.dtype)
-        size = jnp.maximum(jnp.abs(smallest), jnp.abs(largest))
-        regular = least > singular_threshold(n, flat_v.dtype) * size
-        positive = smallest > 0
+            extremes = symmetric_extremes(hessian_vector, n, dtype)
+        regular = invertible(extremes, n, dtype)
+        positive = extremes[0] > 0
     ok = result == dfx.RESULTS.successful
     result = dfx.RESULTS.where(
         ok & ~regular & all_finite(v0), dfx.RESULTS.singular, result
