@@ -78,7 +78,7 @@ def symmetric_solve(matrix: Array, b: Array) -> tuple[Array, Extremes]:
     and the check of `d2L/dv2`), it takes one matrix and one LAPACK call in place of
     an elimination, a second matrix and the eigenvalues: outside a loop, where XLA
     on CPU compiles each fused kernel on its own, the double pendulum's solve holds
-    22 kernels against 40. Not finite where `matrix` is singular."""
+    22 kernels against 41. Not finite where `matrix` is singular."""
     scaled, scale = _unit_scaled(matrix)
     eigs, vectors = jnp.linalg.eigh(scaled)
     x = scale * product(vectors, product(vectors.T, scale * b) / eigs)
