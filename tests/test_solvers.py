@@ -555,3 +555,26 @@ def test_rolled_elimination_is_the_unrolled_one():
     singular[:, 5] = singular[:, 3]
     _, ratio = jax.jit(lambda a, b: dense_lu_solve(a, b, 16))(singular, b)
     assert ratio < 1e-12
+
+
+def test_unpivoted_elimination_of_a_definite_matrix_in_any_units():
+    """`unpivoted_solve` (the fixed-point iteration's multipliers): a definite,
+    non-symmetric 6 x 6 matrix (a constrained step's Schur complement is
+    G(q1) M^-1 G(q0)^T) and the same in units 1e12 apart, `C A C`, solve as NumPy
+    does; a zero leading pivot, which partial pivoting would have avoided, gives a
+    non-finite answer (the iteration then falls back to Newton's method), not a
+    wrong finite one."""
+    from diffrax_vi._linear import unpivoted_solve
+
+    rng = np.random.default_rng(1)
+    g0 = rng.normal(size=(6, 12))
+    g1 = g0 + 0.05 * rng.normal(size=(6, 12))
+    a = g1 @ np.diag(rng.uniform(0.5, 2.0, size=12)) @ g0.T
+    b = rng.normal(size=6)
+    c = np.where(np.arange(6) % 2 == 0, 1e-6, 1e6)
+    solve = jax.jit(unpivoted_solve)
+    np.testing.assert_allclose(solve(a, b), np.linalg.solve(a, b), rtol=1e-10)
+    x = solve(c[:, None] * a * c[None, :], c * b)
+    np.testing.assert_allclose(c * x, np.linalg.solve(a, b), rtol=1e-10)
+    swapped = np.array([[0.0, 1.0], [1.0, 0.0]])
+    assert not np.all(np.isfinite(solve(swapped, np.ones(2))))

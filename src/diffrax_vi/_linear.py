@@ -92,6 +92,27 @@ def unrolled_lu_apply(lu: Array, perm: Array, b: Array) -> Array:
     return x
 
 
+def unpivoted_solve(matrix: Array, b: Array) -> Array:
+    """`matrix^-1 b` by Gaussian elimination without pivoting, unrolled: for a
+    matrix whose leading minors are all regular, as a definite one's are, where a
+    zero pivot may give a NaN that the caller tells apart (the fixed-point
+    iteration's multipliers, which then fall back to Newton's method). No pivot
+    search and no row exchange: a third of `unrolled_lu_solve`'s operations (the
+    rigid double pendulum's program 6568 against 7279 instructions), and its
+    pivots do not depend on the units of the rows and columns."""
+    n = b.shape[0]
+    for k in range(n - 1):
+        factors = matrix[k + 1 :, k] / matrix[k, k]
+        update = factors[:, None] * matrix[k, k + 1 :][None, :]
+        matrix = matrix.at[k + 1 :, k + 1 :].add(-update)
+        b = b.at[k + 1 :].add(-factors * b[k])
+    x = jnp.zeros_like(b)
+    for k in reversed(range(n)):
+        done = jnp.sum(matrix[k, k + 1 :] * x[k + 1 :])
+        x = x.at[k].set((b[k] - done) / matrix[k, k])
+    return x
+
+
 def unrolled_lu_solve(matrix: Array, b: Array) -> tuple[Array, Scalar]:
     """`matrix^-1 b` by `unrolled_lu_factor`, and the ratio of the smallest to the
     largest pivot; for Newton's dense solves (`newton_is_dense`) in place of

@@ -41,6 +41,7 @@ from ._linear import (
     krylov_solve,
     pivot_ratio,
     product,
+    unpivoted_solve,
     unrolled_lu_apply,
     unrolled_lu_factor,
     unrolled_lu_solve,
@@ -522,7 +523,11 @@ def _with_multipliers(fn, y, args, f, inverse_mass) -> tuple[PyTree, PyTree]:
     schur = (d_cols - c_weighted_b).T
     rhs = r_g - constraint_along(weigh(r_w))
     if newton_is_dense(m):
-        dlam, _ = unrolled_lu_solve(schur, rhs)
+        # The Schur complement of a constrained step, G(q1) M^-1 G(q0)^T up to
+        # its sign and h: definite where the constraints are independent and the
+        # step resolves their motion, so eliminated without pivoting; a zero
+        # pivot gives NaN, and the iteration then falls back to Newton's method.
+        dlam = unpivoted_solve(schur, rhs)
     else:
         dlam = lx.linear_solve(
             lx.MatrixLinearOperator(schur), rhs, lx.LU(), throw=False
