@@ -708,7 +708,7 @@ def test_rattle_on_the_multipliers_is_the_constrained_trapezoidal_step(scale):
 
 
 @pytest.mark.parametrize("scale", [1.0, 1e-3], ids=["unit", "milli"])
-def test_constrained_midpoint_iterates_as_without_constraints(scale):
+def test_constrained_midpoint_iterates_as_without_constraints(scale, monkeypatch):
     """MidpointVI with constraints on a separable Lagrangian takes the fixed-point
     iteration, solving for the multipliers exactly in each iteration (an m x m Schur
     complement of derivatives of the constraint alone), rather than Newton's method
@@ -716,9 +716,11 @@ def test_constrained_midpoint_iterates_as_without_constraints(scale):
     Cartesian double pendulum (2 constraints, unequal masses) with an anharmonic
     potential and a positional drive, `FixedPoint()` alone, the default policy and
     `Newton()` agree to round-off over 100 steps, in any units, and the ends stay on
-    the constraints. (Over 400 steps the chaotic pendulum amplifies the round-off of
-    either solve about tenfold per second: up to 2e-12 relative in the momentum, which
-    measures the chaos rather than the solvers.)"""
+    the constraints. Where the multipliers' elimination without pivoting meets a
+    zero pivot (made to fail here in every iterate), the iteration falls back to
+    Newton's method and the solve is Newton's. (Over 400 steps the chaotic pendulum
+    amplifies the round-off of either solve about tenfold per second: up to 2e-12
+    relative in the momentum, which measures the chaos rather than the solvers.)"""
     mass = jnp.array([1.0, 1.0, 0.5, 0.5]) * scale
     term = dvi.LagrangianTerm(
         dvi.SeparableLagrangian(_anharmonic_potential, mass),
@@ -745,6 +747,24 @@ def test_constrained_midpoint_iterates_as_without_constraints(scale):
     for other in (default, newton):
         assert max_abs_diff(fixed[0], other[0]) < 1e-14
         assert max_abs_diff(fixed[1], other[1]) < 5e-14 * scale
+    import diffrax_vi._root_finders
+
+    nan = lambda matrix, b: jnp.full_like(b, jnp.nan)
+    monkeypatch.setattr(diffrax_vi._root_finders, "unpivoted_solve", nan)
+    # Another `root_find_max_steps`: a program of its own, traced with the patch.
+    sol = dfx.diffeqsolve(
+        term,
+        dvi.MidpointVI(root_find_max_steps=17),
+        0.0,
+        1.0,
+        0.01,
+        (q0, jnp.zeros(4)),
+        args=args,
+        max_steps=100,
+    )
+    assert sol.result == dfx.RESULTS.successful
+    assert max_abs_diff(sol.ys[0], newton[0]) < 1e-14
+    assert max_abs_diff(sol.ys[1], newton[1]) < 5e-14 * scale
     q1 = np.asarray(fixed[0][0])
     assert np.max(np.abs(np.asarray(_double_pendulum_rods(1.0, q1, args)))) < 1e-13
     # The anharmonic spring and the rods moved the bob: not a trivial motion.
