@@ -717,10 +717,11 @@ def test_constrained_midpoint_iterates_as_without_constraints(scale, monkeypatch
     potential and a positional drive, `FixedPoint()` alone, the default policy and
     `Newton()` agree to round-off over 100 steps, in any units, and the ends stay on
     the constraints. Where the multipliers' elimination without pivoting meets a
-    zero pivot (made to fail here in every iterate), the iteration falls back to
-    Newton's method and the solve is Newton's. (Over 400 steps the chaotic pendulum
-    amplifies the round-off of either solve about tenfold per second: up to 2e-12
-    relative in the momentum, which measures the chaos rather than the solvers.)"""
+    zero pivot (made to fail here in every iterate, in unit scale), the iteration
+    falls back to Newton's method and the solve is Newton's. (Over 400 steps the
+    chaotic pendulum amplifies the round-off of either solve about tenfold per
+    second: up to 2e-12 relative in the momentum, which measures the chaos rather
+    than the solvers.)"""
     mass = jnp.array([1.0, 1.0, 0.5, 0.5]) * scale
     term = dvi.LagrangianTerm(
         dvi.SeparableLagrangian(_anharmonic_potential, mass),
@@ -747,6 +748,8 @@ def test_constrained_midpoint_iterates_as_without_constraints(scale, monkeypatch
     for other in (default, newton):
         assert max_abs_diff(fixed[0], other[0]) < 1e-14
         assert max_abs_diff(fixed[1], other[1]) < 5e-14 * scale
+    if scale != 1.0:
+        return
     import diffrax_vi._root_finders
 
     nan = lambda matrix, b: jnp.full_like(b, jnp.nan)
