@@ -730,44 +730,30 @@ def test_constrained_midpoint_iterates_as_without_constraints(scale, monkeypatch
     )
     args = {"length": jnp.asarray(1.0), "mass": mass, "scale": jnp.asarray(scale)}
     q0 = jnp.array([np.sin(1.0), -np.cos(1.0), np.sin(1.0) + 0.7, -np.cos(1.0)])
-    finals = []
-    for root_finder in (dvi.FixedPoint(), None, dvi.Newton()):
+
+    def final(solver):
         sol = dfx.diffeqsolve(
-            term,
-            dvi.MidpointVI(root_finder=root_finder),
-            0.0,
-            1.0,
-            0.01,
-            (q0, jnp.zeros(4)),
-            args=args,
-            max_steps=100,
+            term, solver, 0.0, 1.0, 0.01, (q0, jnp.zeros(4)), args=args, max_steps=100
         )
         assert sol.result == dfx.RESULTS.successful
-        finals.append(sol.ys)
-    fixed, default, newton = finals
+        return sol.ys
+
+    fixed, default, newton = (
+        final(dvi.MidpointVI(root_finder=root_finder))
+        for root_finder in (dvi.FixedPoint(), None, dvi.Newton())
+    )
     for other in (default, newton):
         assert max_abs_diff(fixed[0], other[0]) < 1e-14
         assert max_abs_diff(fixed[1], other[1]) < 5e-14 * scale
-    if scale != 1.0:
-        return
-    import diffrax_vi._root_finders
+    if scale == 1.0:
+        import diffrax_vi._root_finders
 
-    nan = lambda matrix, b: jnp.full_like(b, jnp.nan)
-    monkeypatch.setattr(diffrax_vi._root_finders, "unpivoted_solve", nan)
-    # Another `root_find_max_steps`: a program of its own, traced with the patch.
-    sol = dfx.diffeqsolve(
-        term,
-        dvi.MidpointVI(root_find_max_steps=17),
-        0.0,
-        1.0,
-        0.01,
-        (q0, jnp.zeros(4)),
-        args=args,
-        max_steps=100,
-    )
-    assert sol.result == dfx.RESULTS.successful
-    assert max_abs_diff(sol.ys[0], newton[0]) < 1e-14
-    assert max_abs_diff(sol.ys[1], newton[1]) < 5e-14 * scale
+        nan = lambda matrix, b: jnp.full_like(b, jnp.nan)
+        monkeypatch.setattr(diffrax_vi._root_finders, "unpivoted_solve", nan)
+        # Another `root_find_max_steps`: a program of its own, traced with the patch.
+        fallback = final(dvi.MidpointVI(root_find_max_steps=17))
+        assert max_abs_diff(fallback[0], newton[0]) < 1e-14
+        assert max_abs_diff(fallback[1], newton[1]) < 5e-14 * scale
     q1 = np.asarray(fixed[0][0])
     assert np.max(np.abs(np.asarray(_double_pendulum_rods(1.0, q1, args)))) < 1e-13
     # The anharmonic spring and the rods moved the bob: not a trivial motion.
