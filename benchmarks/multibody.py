@@ -217,15 +217,17 @@ def _mv(a, x):
     return jnp.sum(a * x[..., None, :], axis=-1)
 
 
-def _solve(A, b):
-    """A dense solve by Gaussian elimination with partial pivoting, unrolled (no
-    LAPACK call in the loop)."""
+def _solve(A, b, pivot=True):
+    """A dense solve by Gaussian elimination, unrolled (no LAPACK call in the
+    loop): with partial pivoting, or without it for a symmetric positive definite
+    `A`, for which elimination is stable as it is."""
     n = A.shape[0]
     M = jnp.concatenate([A, b[:, None]], axis=1)
     for k in range(n):
-        pivot = k + jnp.argmax(jnp.abs(M[k:, k]))
-        row_k, row_p = M[k], M[pivot]
-        M = M.at[pivot].set(row_k).at[k].set(row_p)
+        if pivot:
+            p = k + jnp.argmax(jnp.abs(M[k:, k]))
+            row_k, row_p = M[k], M[p]
+            M = M.at[p].set(row_k).at[k].set(row_p)
         factors = M[:, k] / M[k, k]
         factors = jnp.where(jnp.arange(n) > k, factors, 0.0)
         M = M - factors[:, None] * M[k][None, :]
@@ -241,7 +243,8 @@ def bare_rattle(scene, half, h, n):
     explicit in the multipliers, Newton on the body velocities and the multipliers
     (12 unknowns, Jacobian by jacfwd, unrolled elimination) to sqrt(eps) of the
     terms and once more, then the momenta projected on the joints' velocity
-    constraint (a 6 x 6 solve)."""
+    constraint (a 6 x 6 symmetric positive definite solve, without pivoting, as
+    the library's projection)."""
     m = scene.lagrangian.mass
     J = scene.lagrangian.inertia
     force = -scene.lagrangian.gravity * m[:, None] * jnp.array([0.0, 0.0, 1.0])
@@ -311,7 +314,7 @@ def bare_rattle(scene, half, h, n):
         flat = jnp.concatenate([p1.ravel(), pi1.ravel()])
         weighted = G1 * weights
         gram = jnp.sum(weighted[:, None, :] * G1[None, :, :], axis=-1)
-        mu = _solve(gram, jnp.sum(weighted * flat, axis=-1))
+        mu = _solve(gram, jnp.sum(weighted * flat, axis=-1), pivot=False)
         flat = flat - jnp.sum(G1 * mu[:, None], axis=0)
         return (x1, R1, flat[:6].reshape(2, 3), flat[6:].reshape(2, 3), u), None
 

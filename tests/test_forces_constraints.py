@@ -748,7 +748,7 @@ def test_constrained_midpoint_iterates_as_without_constraints(scale, monkeypatch
     if scale == 1.0:
         import diffrax_vi._root_finders
 
-        nan = lambda matrix, b: jnp.full_like(b, jnp.nan)
+        nan = lambda matrix, b: (jnp.full_like(b, jnp.nan), jnp.zeros(()))
         monkeypatch.setattr(diffrax_vi._root_finders, "unpivoted_solve", nan)
         # Another `root_find_max_steps`: a program of its own, traced with the patch.
         fallback = final(dvi.MidpointVI(root_find_max_steps=17))

