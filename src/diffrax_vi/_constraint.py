@@ -294,12 +294,16 @@ def project_affine(
     $(G M^{-1} G^\top)\mu = G v(p) + \partial g/\partial t$ by unrolled elimination
     (no LAPACK call in the step), with $M^{-1}G^\top$ from the velocity's derivative
     along the rows of $G$. On a group $G$ is left-trivialised and $p$ the body-frame
-    momentum. The matrix is symmetric positive definite where the constraints are
-    independent, so the elimination needs no pivoting (`unpivoted_solve`): the rigid
-    double pendulum's first call about 10% shorter, and its step 1% faster, than
-    with partial pivoting. Newton's method on $\mu$ reaches the same root in one
-    iteration, but puts a loop and its termination in every step's program (the
-    four-bar's, whose mass depends on its angles, too).
+    momentum. The matrix is symmetric and definite where the mass is definite and
+    the constraints are independent, so the elimination needs no pivoting
+    (`unpivoted_solve`): the rigid double pendulum's first call about 10% shorter,
+    and its step 1% faster, than with partial pivoting. With an indefinite
+    $\partial^2 L/\partial v^2$ (which the start admits, and no scene has) a
+    leading minor may vanish or be small: the pivot ratio then reports
+    `RESULTS.singular` where pivoting might have solved the system. Newton's
+    method on $\mu$ reaches the same root in one iteration, but puts a loop and its
+    termination in every step's program (the four-bar's, whose mass depends on its
+    angles, too).
 
     $\mu$ is differentiated as the root of the hidden constraint
     (`known_root`), as Newton's was: differentiating the elimination itself made

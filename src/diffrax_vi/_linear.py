@@ -102,10 +102,11 @@ def unpivoted_solve(matrix: Array, b: Array) -> tuple[Array, Scalar]:
     projection's not either), and its pivots do not depend on the units of the
     rows and columns. A zero pivot reads as a ratio of zero; the NaN it leaves in
     the solution is the caller's to tell apart (the fixed-point iteration's
-    multipliers then fall back to Newton's method). For a symmetric positive
-    definite matrix (a constrained step's momentum projection, $G M^{-1} G^\top$
-    with independent constraints) the elimination is backward stable without
-    pivoting, and a pivot near zero is a matrix singular to working precision."""
+    multipliers then fall back to Newton's method). For a symmetric definite
+    matrix (a constrained step's momentum projection, $G M^{-1} G^\top$ with a
+    definite mass and independent constraints) the elimination is backward stable
+    without pivoting, and a pivot near zero is a matrix singular to working
+    precision."""
     n = b.shape[0]
     for k in range(n - 1):
         factors = matrix[k + 1 :, k] / matrix[k, k]
