@@ -1,8 +1,11 @@
 """Gradients of implicit solves: their backward loops compiled whole, against
 optimistix's `ImplicitAdjoint` as the reference.
 
-Each implicit step of up to 16 unknowns is differentiated by the implicit function
-theorem with the forward solves' unrolled elimination (`_root_finders._implicit_solve`).
+Each implicit step that Newton's method factorises densely (up to 16 unknowns, and a
+constrained step's up to 128) is differentiated by the implicit function theorem with
+the forward solves' elimination, unrolled up to 16 unknowns and rolled into a loop
+beyond (`_root_finders._implicit_solve`): the rigid double pendulum's steps have 18
+unknowns, the 4-link chain's 36.
 The reference differentiates the same root find with optimistix's default
 `ImplicitAdjoint`, whose lineax LU is a LAPACK call and whose solve check is a host
 callback: both break the backward loop into kernels dispatched one by one. The
@@ -45,6 +48,8 @@ CASES = [
     ("free_rigid_body", "MidpointVI"),
     ("heavy_top", "LGVI"),
     ("four_bar", "MidpointVI"),
+    ("rigid_double_pendulum", "TrapezoidalVI"),
+    ("rigid_chain", "TrapezoidalVI"),
 ]
 STEPS = 400
 

@@ -45,6 +45,7 @@ CASES = [
     ("free_rigid_body", "MidpointVI"),
     ("heavy_top", "LGVI"),
     ("four_bar", "MidpointVI"),
+    ("rigid_double_pendulum", "TrapezoidalVI"),
 ]
 TAKEN = _adjoint._takes_inverse_roots
 

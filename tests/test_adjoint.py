@@ -490,6 +490,32 @@ def test_the_backward_pass_solves_each_step_once():
     assert rod_solves(dvi.ReversibleAdjoint(checkpoint_every=4)) == 6
 
 
+def test_a_large_constrained_step_is_differentiated_without_lapack():
+    """The rigid double pendulum's constrained steps have 18 unknowns, beyond the
+    unrolled elimination's 16: Newton's method factorises them densely by the
+    elimination rolled into a loop (`constrained_solver`), and so does each step's
+    implicit derivative: no LAPACK LU (lineax's, with its host-callback checks) in
+    the reversible gradient's program, whose repeated forward steps take the
+    inverse steps' roots (two root solves for the forward steps, two for the
+    inverse steps: the fixed-point iteration and its Newton fallback; eight
+    before). Before, the backward loops were broken into kernels
+    (`benchmarks/gradient_loops.py`); `tests/test_surface.py` checks the compiled
+    loops of the checkpointed gradient."""
+    scene = dvi.scenes.rigid_double_pendulum()
+    h = scene.period / 100
+
+    def loss(y0):
+        adjoint = dvi.ReversibleAdjoint()
+        sol = dfx.diffeqsolve(
+            scene.term(), dvi.TrapezoidalVI(), 0.0, 4 * h, h, y0, adjoint=adjoint
+        )
+        return sum(jnp.sum(x) for x in jax.tree.leaves(sol.ys))
+
+    text = str(jax.make_jaxpr(jax.grad(loss))(scene.y0))
+    assert " = lu " not in text
+    assert text.count("name=root_find") == 4
+
+
 def test_a_gradient_traces_each_kind_of_step_once():
     """Tracing a reversible gradient runs the solver's step in Python once for each
     kind of step it takes: the forward solve's, the inverse step's (from a jump)
@@ -634,6 +660,7 @@ def _final_gradient(scene, solver, adjoint, forced):
         ("four_bar", dvi.MidpointVI(), False),
         ("cartesian_pendulum", dvi.MidpointVI(), True),
         ("cartesian_pendulum", dvi.TrapezoidalVI(), False),
+        ("rigid_double_pendulum", dvi.TrapezoidalVI(), False),
     ],
     ids=[
         "GaussVPRK(2)",
@@ -642,6 +669,7 @@ def _final_gradient(scene, solver, adjoint, forced):
         "four-bar",
         "rod-forced",
         "RATTLE",
+        "joined-bodies",
     ],
 )
 def test_the_inverse_steps_root_gives_the_checkpointed_gradient(scene, solver, forced):
@@ -652,7 +680,8 @@ def test_the_inverse_steps_root_gives_the_checkpointed_gradient(scene, solver, f
     LGVI, whose inverse step's Cayley parameter is -f with -h, the same velocity
     2f/h. A constrained step's multipliers are those of the inverse step's
     momentum projection (the four-bar's loop closure; the Cartesian pendulum's
-    rod, forced, and under RATTLE, whose unknowns are the multipliers alone). The
+    rod, forced, and under RATTLE, whose unknowns are the multipliers alone; the
+    rigid double pendulum's 18 unknowns, beyond the unrolled elimination's 16). The
     gradients equal checkpointing's to 1e-12 relative."""
     scene = dvi.scenes.SCENES[scene]()
     ours = _final_gradient(scene, solver, dvi.ReversibleAdjoint(), forced)

@@ -37,8 +37,13 @@ from ._private_api import (
     save_y,
     WrapTerm,
 )
-from ._solver.base import AbstractVariationalSolver, is_symmetric, Substep
-from ._solver.unknowns import KnownRoot
+from ._solver.base import (
+    AbstractVariationalSolver,
+    is_symmetric,
+    Substep,
+    unwrap_term,
+)
+from ._solver.unknowns import constrained_solver, KnownRoot
 from ._space import tangent
 from ._term import LagrangianTerm
 from ._tolerance import newton_is_dense
@@ -626,14 +631,21 @@ def _takes_inverse_roots(solver, terms, back_state, checkpoint_every) -> bool:
     step's equations are solved twice, and a gradient's program holds one root
     solve less (`benchmarks/reversible_roots.py`). Not with `checkpoint_every`: a
     step from an anchor starts from the forward solve's own state, not from the
-    inverse step's, whose root it would not be; and not beyond the dense implicit
-    derivative's `NEWTON_DENSE_MAX` unknowns."""
+    inverse step's, whose root it would not be; and only where the root's implicit
+    derivative is a dense elimination, as where Newton's method factorises densely:
+    up to `NEWTON_DENSE_MAX` unknowns, and a constrained step's equations up to
+    `CONSTRAINED_DENSE_MAX` (`constrained_solver`; the rigid double pendulum's 18)."""
     if checkpoint_every is not None or not isinstance(
         solver, AbstractVariationalSolver
     ):
         return False
     root = solver.root_of_inverse(terms, back_state)
-    return root is not None and newton_is_dense(tree_size(root))
+    if root is None:
+        return False
+    term, _ = unwrap_term(terms, type(solver).__name__)
+    if term.constraint is not None and constrained_solver(root) == "dense":
+        return True
+    return newton_is_dense(tree_size(root))
 
 
 def _anchors(advance, ext0, solver_state, n, max_steps, every):

@@ -44,7 +44,6 @@ from ._linear import (
     unpivoted_solve,
     unrolled_lu_apply,
     unrolled_lu_factor,
-    unrolled_lu_solve,
 )
 from ._misc import tree_dtype, tree_size, tree_sub
 from ._private_api import promote_result, unvmap_any
@@ -694,7 +693,8 @@ def solve(
     dtype = tree_dtype(guess)
     if isinstance(root_finder, AbstractVIRootFinder):
         find = _finder(root_finder, max_steps, tags, curvature)
-        return _differentiated(find, residual, guess, preconditioner, carry)
+        dense = _dense_derivative(root_finder, guess)
+        return _differentiated(find, residual, guess, preconditioner, carry, dense)
 
     def relative(w, _):
         r, s = residual(w)
@@ -747,13 +747,25 @@ def _finder(
     return find
 
 
-def _differentiated(find, residual, guess, preconditioner, carry) -> Solved:
+def _dense_derivative(root_finder: AbstractVIRootFinder, guess: PyTree) -> bool:
+    """Whether the root `root_finder` finds from `guess` is differentiated by a dense
+    elimination (`_implicit_solve`): where Newton's method factorises its Jacobian
+    densely (`Newton.dense`: up to `NEWTON_DENSE_MAX` unknowns, and a constrained
+    step's equations up to `CONSTRAINED_DENSE_MAX`, `constrained_solver`), and for
+    any other of this package's root finders up to `NEWTON_DENSE_MAX` unknowns."""
+    if isinstance(root_finder, Newton):
+        return root_finder.dense(guess)
+    return newton_is_dense(tree_size(guess))
+
+
+def _differentiated(find, residual, guess, preconditioner, carry, dense) -> Solved:
     """`find(residual, guess, preconditioner, carry)`, differentiated by the implicit
-    function theorem at the root it returns."""
-    if not newton_is_dense(tree_size(guess)):
-        # Larger systems keep optimistix's implicit differentiation of each
-        # `optimistix.root_find` (lineax's LAPACK LU): the rolled elimination made
-        # a 64-mass chain's MidpointVI gradient 1.2-2.8x slower (CHANGELOG).
+    function theorem at the root it returns: by a dense elimination where `dense`
+    (`_dense_derivative`), else by optimistix's implicit differentiation of each
+    `optimistix.root_find` (lineax's LU, a LAPACK call): for a matrix-free Newton
+    solve, the rolled elimination made a 64-mass chain's `MidpointVI` gradient
+    1.2-2.8x slower (CHANGELOG)."""
+    if not dense:
         return find(residual, guess, preconditioner, carry)
     return _implicit_solve(find, residual, guess, preconditioner, carry)
 
@@ -766,8 +778,9 @@ def known_root(
     carry: PyTree = None,
 ) -> Solved:
     """`root`, a root of `residual` found elsewhere, as `solve` would return it,
-    differentiated by the implicit function theorem there: no iteration in the
-    program. For at most `NEWTON_DENSE_MAX` unknowns."""
+    differentiated by the implicit function theorem there by a dense elimination
+    (`_implicit_solve`): no iteration in the program. For a system that Newton's
+    method would factorise densely (`_dense_derivative`)."""
     dtype = tree_dtype(root)
 
     def find(fn, guess, preconditioner, carry):
@@ -809,18 +822,21 @@ def solve_with_fallback(
             lambda: solved,
         )
 
-    return _differentiated(find, residual, guess, preconditioner, None)
+    dense = _dense_derivative(fallback[0], guess)
+    return _differentiated(find, residual, guess, preconditioner, None, dense)
 
 
 def _implicit_solve(find, residual, guess, preconditioner, carry) -> Solved:
-    """`find(residual, guess, preconditioner, carry)` for at most
-    `NEWTON_DENSE_MAX` unknowns, differentiated by the implicit function theorem
-    as optimistix's `ImplicitAdjoint` does, but with the forward solves' unrolled
-    elimination in place of lineax's LU: no LAPACK call and no host callback
+    """`find(residual, guess, preconditioner, carry)`, differentiated by the
+    implicit function theorem as optimistix's `ImplicitAdjoint` does, but with the
+    forward solves' dense elimination (`dense_lu_solve`: unrolled up to
+    `NEWTON_DENSE_MAX` unknowns, rolled into a loop beyond) in place of lineax's
+    LU: no LAPACK call and no host callback
     (lineax checks its solves) in a gradient's backward loop, either of which
     breaks it into kernels dispatched one by one (`diagnostics.loop_breakers`).
     Gradients of the Kepler, double pendulum, free rigid body, heavy top and
-    four-bar solves run 3.4-12.7x faster, the same to round-off
+    four-bar solves run 3.4-12.7x faster, the same to round-off, and so do the
+    rigid double pendulum's, whose constrained steps have 18 unknowns
     (`benchmarks/gradient_loops.py`). A Jacobian singular at the root (which a
     Newton-type solve has already reported as `RESULTS.singular`) gives a gradient
     that is not finite."""
@@ -871,7 +887,7 @@ def _implicit_jvp(primals, tangents, *, find):
     t_root = lax.custom_linear_solve(
         lambda x: product(jacobian, x),
         -moved,
-        lambda _, b: unrolled_lu_solve(jacobian, b)[0],
-        lambda _, b: unrolled_lu_solve(jacobian.T, b)[0],
+        lambda _, b: dense_lu_solve(jacobian, b, NEWTON_DENSE_MAX)[0],
+        lambda _, b: dense_lu_solve(jacobian.T, b, NEWTON_DENSE_MAX)[0],
     )
     return leaves, jtu.tree_leaves(unravel(t_root)) + no_tangent[n_value:]
