@@ -835,8 +835,8 @@ def _implicit_solve(find, residual, guess, preconditioner, carry) -> Solved:
     (lineax checks its solves) in a gradient's backward loop, either of which
     breaks it into kernels dispatched one by one (`diagnostics.loop_breakers`).
     Gradients of the Kepler, double pendulum, free rigid body, heavy top and
-    four-bar solves run 3.4-12.7x faster, the same to round-off, and so do the
-    rigid double pendulum's, whose constrained steps have 18 unknowns
+    four-bar solves run 4.0-12.9x faster, the same to round-off, and the rigid
+    double pendulum's, whose constrained steps have 18 unknowns, 2.1x faster
     (`benchmarks/gradient_loops.py`). A Jacobian singular at the root (which a
     Newton-type solve has already reported as `RESULTS.singular`) gives a gradient
     that is not finite."""
