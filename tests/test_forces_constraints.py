@@ -428,6 +428,51 @@ def test_quadratic_momentum_projection_is_one_linear_solve():
     assert np.max(np.abs(along_q - differences)) < 1e-8 * np.max(np.abs(differences))
 
 
+class _SignedMasses(dvi.AbstractSeparableLagrangian):
+    """Free motion in R^3 with the constant masses `mass`: an indefinite d2L/dv2
+    where an entry is negative (the start admits it)."""
+
+    mass: jax.Array
+
+    def potential(self, t, q, args):
+        return 0.0 * jnp.sum(q)
+
+
+def test_an_indefinite_mass_is_projected_with_pivoting():
+    """The momentum projection solves G M^-1 G^T without pivoting only where the
+    term knows its constant mass to be positive (`mass_definite`, where it is
+    built). With masses (1, -1, 1) and the linear constraints q0 + q1 = 0, q0 = 0,
+    G M^-1 G^T = [[0, 1], [1, 1]] is regular, with a zero leading minor: partial
+    pivoting solves it, and the projected momentum keeps the hidden constraint,
+    as numpy's solve says. A positive mass known when the term is built keeps the
+    unpivoted solve (no `argmax`, a pivot search, in its program); the same mass
+    traced when the term is built pivots."""
+    from diffrax_vi._constraint import project_momentum
+
+    a = np.array([[1.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    constraint = lambda t, q, args: jnp.asarray(a) @ q
+    q, p = jnp.zeros(3), jnp.array([0.3, -0.7, 1.1])
+
+    def project(mass):
+        term = dvi.LagrangianTerm(_SignedMasses(mass), constraint=constraint)
+        return term, lambda p_: project_momentum(term, 0.0, q, p_, None)
+
+    term, indefinite = project(jnp.array([1.0, -1.0, 1.0]))
+    assert not term.mass_definite
+    projected = jax.jit(indefinite)(p)
+    assert projected.result == dfx.RESULTS.successful
+    weights = np.array([1.0, -1.0, 1.0])
+    mu = np.linalg.solve((a * weights) @ a.T, a @ (weights * np.asarray(p)))
+    np.testing.assert_allclose(projected.p, p - a.T @ mu, rtol=0, atol=1e-15)
+    assert np.max(np.abs(a @ (weights * projected.p))) < 1e-15
+
+    term, definite = project(jnp.array([1.0, 2.0, 3.0]))
+    assert term.mass_definite
+    assert "argmax" not in str(jax.make_jaxpr(definite)(p))
+    traced = jax.make_jaxpr(lambda m: project(m)[1](p))(jnp.array([1.0, 2.0, 3.0]))
+    assert "argmax" in str(traced)
+
+
 @pytest.mark.parametrize("scale", [1.0, 1e-3], ids=["unit", "milli"])
 def test_inconsistent_start_is_an_error(scale):
     """A start off the constraint manifold is refused, in any units: the check is

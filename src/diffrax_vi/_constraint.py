@@ -241,7 +241,9 @@ def project_momentum(
         return inverse_legendre(term.lagrangian, t, (q, p), args, None, False)
 
     if newton_is_dense(m) and constant_mass(term.lagrangian, p) is not None:
-        return project_constant_mass(term.lagrangian, jacobian, rate, p)
+        return project_constant_mass(
+            term.lagrangian, jacobian, rate, p, term.mass_definite
+        )
     if newton_is_dense(m) and velocity_is_explicit(term.lagrangian, p):
         return project_affine(jacobian, rate, p, velocity)
     if velocity_is_explicit(term.lagrangian, p):
@@ -287,6 +289,7 @@ def project_affine(
     rate: Array,
     p: P,
     velocity: Callable[[P], tuple[PyTree, dfx.RESULTS]],
+    definite: bool = False,
 ) -> Projected:
     r"""`project_momentum` where `velocity(p) -> (v, result)` is affine in `p`,
     $v(p - G^\top\mu) = v(p) - M^{-1}G^\top\mu$, given the constraint Jacobian $G$
@@ -295,12 +298,15 @@ def project_affine(
     (no LAPACK call in the step), with $M^{-1}G^\top$ from the velocity's derivative
     along the rows of $G$. On a group $G$ is left-trivialised and $p$ the body-frame
     momentum. The matrix is symmetric and definite where the mass is definite and
-    the constraints are independent, so the elimination needs no pivoting
+    the constraints are independent; where that is known when the step is traced
+    (`definite`: a declared constant mass, known where the term was built and
+    positive, `LagrangianTerm.mass_definite`) the elimination needs no pivoting
     (`unpivoted_solve`): the rigid double pendulum's first call about 10% shorter,
-    and its step 1% faster, than with partial pivoting. With an indefinite
-    $\partial^2 L/\partial v^2$ (which the start admits, and no scene has) a
-    leading minor may vanish or be small: the pivot ratio then reports
-    `RESULTS.singular` where pivoting might have solved the system. Newton's
+    and its step 1% faster, than with partial pivoting. Otherwise (a mass that
+    depends on $q$, one traced where the term was built, or an indefinite
+    $\partial^2 L/\partial v^2$, which the start admits) it pivots
+    (`unrolled_lu_solve`): without pivoting, a small leading minor of an indefinite
+    matrix would give a multiplier with no error bound. Newton's
     method on $\mu$ reaches the same root in one iteration, but puts a loop and its
     termination in every step's program (the four-bar's, whose mass depends on its
     angles, too).
@@ -323,7 +329,9 @@ def project_affine(
     v, along, result = jax.linearize(flat_velocity, flat_p, has_aux=True)
     weighted = jax.vmap(along)(jacobian)  # Row j: M^-1 G^T e_j.
     mu, ratio = _reduced_solve(
-        product(weighted, jacobian.T), product(jacobian, v) + rate, unpivoted_solve
+        product(weighted, jacobian.T),
+        product(jacobian, v) + rate,
+        unpivoted_solve if definite else unrolled_lu_solve,
     )
     mu = known_root(residual, mu).value
     # NaN pivots (a NaN state) are not a singular matrix: the step's check of the
@@ -336,15 +344,19 @@ def project_affine(
     return Projected(unravel(flat_p + impulse), unravel(impulse), mu, result)
 
 
-def project_constant_mass(lagrangian, jacobian: Array, rate: Array, p: P) -> Projected:
+def project_constant_mass(
+    lagrangian, jacobian: Array, rate: Array, p: P, definite: bool
+) -> Projected:
     """`project_affine` for a Lagrangian that declares a constant mass
-    (`constant_mass`), $v = M^{-1}p$."""
+    (`constant_mass`), $v = M^{-1}p$; `definite` where that mass is known to be
+    positive (`LagrangianTerm.mass_definite`)."""
     inverse_mass = jtu.tree_map(lambda m: 1 / m, constant_mass(lagrangian, p))
     return project_affine(
         jacobian,
         rate,
         p,
         lambda p: (jtu.tree_map(jnp.multiply, inverse_mass, p), dfx.RESULTS.successful),
+        definite,
     )
 
 

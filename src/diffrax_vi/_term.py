@@ -73,6 +73,21 @@ def mass_settles_velocity(lagrangian: AbstractLagrangian) -> bool:
     return not bool(_mass_checked_when_known(mass)[1])
 
 
+def mass_is_definite(lagrangian: AbstractLagrangian) -> bool:
+    r"""Whether the Lagrangian declares a constant mass (`declared_mass`) that is
+    known where the term is built and positive in every entry. A constrained step's
+    momentum projection then solves $G M^{-1} G^\top$, symmetric positive definite
+    where the constraints are independent, without pivoting (`project_affine`). A
+    mass traced where the term is built, or one with an entry that is not positive
+    (an indefinite $\partial^2 L/\partial v^2$, which the start admits), is
+    eliminated with partial pivoting."""
+    mass = declared_mass(lagrangian)
+    if mass is None or traced(mass):
+        return False
+    m, _ = _mass_checked_when_known(mass)
+    return all(bool(np.all(np.asarray(x) > 0)) for x in jtu.tree_leaves(m))
+
+
 def _mass_checked_when_known(mass: PyTree) -> tuple[PyTree, bool | Array]:
     """A declared mass as arrays, and whether it is singular: computed now, in
     NumPy, where the mass is known (in JAX each operation of the check was a
@@ -129,6 +144,9 @@ class LagrangianTerm(dfx.AbstractTerm):
     constraint: Callable[..., ArrayLike] | None
     # Whether the vector field skips its per-step check; see `mass_settles_velocity`.
     mass_checked: bool = eqx.field(static=True)
+    # Whether a constraint's momentum projection eliminates without pivoting; see
+    # `mass_is_definite`.
+    mass_definite: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -175,6 +193,9 @@ class LagrangianTerm(dfx.AbstractTerm):
             not check_every_step
             and constraint is None
             and mass_settles_velocity(self.lagrangian)
+        )
+        self.mass_definite = constraint is not None and mass_is_definite(
+            self.lagrangian
         )
 
     def hamilton(

@@ -157,7 +157,11 @@ def rattle_step(
     jacobian1 = constraint_jacobian(g, t1, q1, args)
     end = unravel(half_step(lam) + 0.5 * h * jax.flatten_util.ravel_pytree(force1)[0])
     projected = project_constant_mass(
-        term.lagrangian, jacobian1, constraint_rate(g, t1, q1, args), end
+        term.lagrangian,
+        jacobian1,
+        constraint_rate(g, t1, q1, args),
+        end,
+        term.mass_definite,
     )
     dp = jtu.tree_map(lambda a, b: a - b, projected.p, p0)
     result = dfx.RESULTS.where(
