@@ -136,7 +136,10 @@ class LagrangianTerm(dfx.AbstractTerm):
         written by hand; a mass replaced in the term afterwards is not checked again.
         There a NaN from the potential or the force is carried to the end of a
         fixed-step Runge–Kutta solve, as for any diffrax `ODETerm`, unless the term
-        is built with `check_every_step=True`.
+        is built with `check_every_step=True`. With a constraint, the term also
+        records then whether its declared constant mass is positive, which lets
+        each step project its momentum without pivoting; build a new term, rather
+        than replace the mass in this one, to give it a mass that is not.
     """
 
     lagrangian: AbstractLagrangian
