@@ -193,7 +193,7 @@ SLOW = (
     "test_adjoint.py::test_the_inverse_steps_root_gives_the_checkpointed_gradient[four",
     # Its 18 unknowns, beyond the unrolled elimination's (two gradients compiling
     # for 40 s): test_a_large_constrained_step_is_differentiated_without_lapack
-    # checks their programs by default, test_surface.py the checkpointed gradient.
+    # checks their programs by default.
     "test_adjoint.py::test_the_inverse_steps_root_gives_the_checkpointed_gradient[joi",
     # The hinged box vmapped, in solve_fixed_steps and in float32 (52 s of
     # compilation): each runs by default on its own, a vmapped constrained solve in

@@ -495,25 +495,27 @@ def test_a_large_constrained_step_is_differentiated_without_lapack():
     unrolled elimination's 16: Newton's method factorises them densely by the
     elimination rolled into a loop (`constrained_solver`), and so does each step's
     implicit derivative: no LAPACK LU (lineax's, with its host-callback checks) in
-    the reversible gradient's program, whose repeated forward steps take the
-    inverse steps' roots (two root solves for the forward steps, two for the
-    inverse steps: the fixed-point iteration and its Newton fallback; eight
-    before). Before, the backward loops were broken into kernels
-    (`benchmarks/gradient_loops.py`); `tests/test_surface.py` checks the compiled
-    loops of the checkpointed gradient."""
+    either gradient's program; and the reversible adjoint's repeated forward steps
+    take the inverse steps' roots (two root solves for the forward steps, two for
+    the inverse steps: the fixed-point iteration and its Newton fallback; eight
+    before). Before, both gradients' backward loops were broken into kernels
+    (`benchmarks/gradient_loops.py`)."""
     scene = dvi.scenes.rigid_double_pendulum()
     h = scene.period / 100
 
-    def loss(y0):
-        adjoint = dvi.ReversibleAdjoint()
-        sol = dfx.diffeqsolve(
-            scene.term(), dvi.TrapezoidalVI(), 0.0, 4 * h, h, y0, adjoint=adjoint
-        )
-        return sum(jnp.sum(x) for x in jax.tree.leaves(sol.ys))
+    def program(adjoint):
+        def loss(y0):
+            sol = dfx.diffeqsolve(
+                scene.term(), dvi.TrapezoidalVI(), 0.0, 4 * h, h, y0, adjoint=adjoint
+            )
+            return sum(jnp.sum(x) for x in jax.tree.leaves(sol.ys))
 
-    text = str(jax.make_jaxpr(jax.grad(loss))(scene.y0))
-    assert " = lu " not in text
-    assert text.count("name=root_find") == 4
+        return str(jax.make_jaxpr(jax.grad(loss))(scene.y0))
+
+    assert " = lu " not in program(dfx.RecursiveCheckpointAdjoint())
+    reversible = program(dvi.ReversibleAdjoint())
+    assert " = lu " not in reversible
+    assert reversible.count("name=root_find") == 4
 
 
 def test_a_gradient_traces_each_kind_of_step_once():
