@@ -28,7 +28,7 @@ import jax.tree_util as jtu
 from ._adaptive import ReversibleController, ReversibleState
 from ._force import depends_on_velocity
 from ._lagrangian import Lagrangian
-from ._misc import call_traced_once, traced, tree_size
+from ._misc import call_traced_once, traced
 from ._private_api import (
     clip_to_end,
     is_subsaveat,
@@ -37,16 +37,16 @@ from ._private_api import (
     save_y,
     WrapTerm,
 )
+from ._root_finders import dense_derivative
 from ._solver.base import (
     AbstractVariationalSolver,
     is_symmetric,
     Substep,
     unwrap_term,
 )
-from ._solver.unknowns import constrained_solver, KnownRoot
+from ._solver.unknowns import KnownRoot, step_newton
 from ._space import tangent
 from ._term import LagrangianTerm
-from ._tolerance import newton_is_dense
 
 
 REBUILD_FAILED = (
@@ -632,9 +632,10 @@ def _takes_inverse_roots(solver, terms, back_state, checkpoint_every) -> bool:
     solve less (`benchmarks/reversible_roots.py`). Not with `checkpoint_every`: a
     step from an anchor starts from the forward solve's own state, not from the
     inverse step's, whose root it would not be; and only where the root's implicit
-    derivative is a dense elimination, as where Newton's method factorises densely:
-    up to `NEWTON_DENSE_MAX` unknowns, and a constrained step's equations up to
-    `CONSTRAINED_DENSE_MAX` (`constrained_solver`; the rigid double pendulum's 18)."""
+    derivative is a dense elimination (`dense_derivative` of the step's Newton
+    method, `step_newton`): up to `NEWTON_DENSE_MAX` unknowns, and a constrained
+    step's equations up to `CONSTRAINED_DENSE_MAX` (the rigid double pendulum's
+    18)."""
     if checkpoint_every is not None or not isinstance(
         solver, AbstractVariationalSolver
     ):
@@ -643,9 +644,7 @@ def _takes_inverse_roots(solver, terms, back_state, checkpoint_every) -> bool:
     if root is None:
         return False
     term, _ = unwrap_term(terms, type(solver).__name__)
-    if term.constraint is not None and constrained_solver(root) == "dense":
-        return True
-    return newton_is_dense(tree_size(root))
+    return dense_derivative(step_newton(term.constraint is not None, root), root)
 
 
 def _anchors(advance, ext0, solver_state, n, max_steps, every):

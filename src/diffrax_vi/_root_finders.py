@@ -693,7 +693,7 @@ def solve(
     dtype = tree_dtype(guess)
     if isinstance(root_finder, AbstractVIRootFinder):
         find = _finder(root_finder, max_steps, tags, curvature)
-        dense = _dense_derivative(root_finder, guess)
+        dense = dense_derivative(root_finder, guess)
         return _differentiated(find, residual, guess, preconditioner, carry, dense)
 
     def relative(w, _):
@@ -747,7 +747,7 @@ def _finder(
     return find
 
 
-def _dense_derivative(root_finder: AbstractVIRootFinder, guess: PyTree) -> bool:
+def dense_derivative(root_finder: AbstractVIRootFinder, guess: PyTree) -> bool:
     """Whether the root `root_finder` finds from `guess` is differentiated by a dense
     elimination (`_implicit_solve`): where Newton's method factorises its Jacobian
     densely (`Newton.dense`: up to `NEWTON_DENSE_MAX` unknowns, and a constrained
@@ -761,7 +761,7 @@ def _dense_derivative(root_finder: AbstractVIRootFinder, guess: PyTree) -> bool:
 def _differentiated(find, residual, guess, preconditioner, carry, dense) -> Solved:
     """`find(residual, guess, preconditioner, carry)`, differentiated by the implicit
     function theorem at the root it returns: by a dense elimination where `dense`
-    (`_dense_derivative`), else by optimistix's implicit differentiation of each
+    (`dense_derivative`), else by optimistix's implicit differentiation of each
     `optimistix.root_find` (lineax's LU, a LAPACK call): for a matrix-free Newton
     solve, the rolled elimination made a 64-mass chain's `MidpointVI` gradient
     1.2-2.8x slower (CHANGELOG)."""
@@ -780,7 +780,7 @@ def known_root(
     """`root`, a root of `residual` found elsewhere, as `solve` would return it,
     differentiated by the implicit function theorem there by a dense elimination
     (`_implicit_solve`): no iteration in the program. For a system that Newton's
-    method would factorise densely (`_dense_derivative`)."""
+    method would factorise densely (`dense_derivative`)."""
     dtype = tree_dtype(root)
 
     def find(fn, guess, preconditioner, carry):
@@ -822,7 +822,7 @@ def solve_with_fallback(
             lambda: solved,
         )
 
-    dense = _dense_derivative(fallback[0], guess)
+    dense = dense_derivative(fallback[0], guess)
     return _differentiated(find, residual, guess, preconditioner, None, dense)
 
 

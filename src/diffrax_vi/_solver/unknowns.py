@@ -177,6 +177,12 @@ def constrained_solver(guess: PyTree) -> str | lx.AbstractLinearSolver:
     return "dense" if tree_size(guess) <= CONSTRAINED_DENSE_MAX else lx.LU()
 
 
+def step_newton(constrained: bool, guess: PyTree) -> Newton:
+    """Newton's method for a step's equations from `guess`: with
+    `constrained_solver`'s linear solver where they are constrained."""
+    return Newton(linear_solver=constrained_solver(guess) if constrained else "auto")
+
+
 class AbstractStepRootFinding(eqx.Module):
     """How the equations of an implicit step are solved: a root-finding policy.
     `own`: whether it runs this package's root finders alone, which leave a
@@ -254,9 +260,7 @@ class FixedPointThenNewton(AbstractStepRootFinding):
         return None
 
     def newton(self, equations: StepEquations, guess: PyTree) -> Newton:
-        return Newton(
-            linear_solver=constrained_solver(guess) if equations.constrained else "auto"
-        )
+        return step_newton(equations.constrained, guess)
 
     def measures_curvature(self, equations, guess):
         # The fixed-point iteration's root is certified (`FixedPoint.curvature`).
