@@ -11,7 +11,9 @@ in the same minutes:
 `diffeqsolve` over 100 steps saving only `t1`; a gradient is `jax.grad` of the sum
 of its final state with respect to `y0`, under `RecursiveCheckpointAdjoint` and
 `ReversibleAdjoint`; Tsit5's gradient (under `RecursiveCheckpointAdjoint`) is the
-reference for what diffrax's adjoint costs any solver. On Kepler, `MidpointVI` also
+reference for what diffrax's adjoint costs any solver, and the first calls of diffrax's
+own implicit solvers on the same term (`ImplicitEuler`, `Kvaerno5`; forward solves)
+the reference for what an implicit step costs in diffrax. On Kepler, `MidpointVI` also
 runs with `root_finder=FixedPoint()` alone: its default pairs the fixed-point
 iteration with a Newton fallback, and the difference is what that fallback costs a
 first call. A trivial program is compiled first, so that the backend's start-up is
@@ -27,7 +29,8 @@ import subprocess
 import sys
 
 
-# (scene, its variational solvers); Tsit5 runs on the same term for each scene.
+# (scene, its variational solvers); Tsit5 and diffrax's own implicit solvers
+# (`IMPLICIT`) run on the same term for each scene.
 SCENES = [
     ("kepler", ["MidpointVI", "MidpointVI/FixedPoint"]),
     ("double_pendulum", ["TrapezoidalVI"]),
@@ -36,6 +39,10 @@ SCENES = [
     ("four_bar", ["MidpointVI"]),
     ("rigid_double_pendulum", ["TrapezoidalVI"]),
 ]
+# diffrax's implicit solvers, forward solves only: its one-stage method and the one
+# its documentation recommends for stiff problems. Their first calls are what
+# diffrax's own implicit steps cost, the reference for ours beside Tsit5's.
+IMPLICIT = ["ImplicitEuler", "Kvaerno5"]
 
 CASE = """
 import json, re, sys, time
@@ -50,6 +57,10 @@ scene_name, solver_name, adjoint = sys.argv[1:]
 scene = dvi.scenes.SCENES[scene_name]()
 if solver_name == "MidpointVI/FixedPoint":
     solver = dvi.MidpointVI(root_finder=dvi.FixedPoint())
+elif solver_name in ("ImplicitEuler", "Kvaerno5"):
+    # diffrax's default root finder, with the tolerances a constant step needs
+    # (Newton's in this package: sqrt(eps), about 1.5e-8, relative).
+    solver = getattr(dfx, solver_name)(root_finder=dfx.VeryChord(rtol=1e-8, atol=1e-8))
 else:
     solver = make_solver(solver_name)
 term = scene.term()
@@ -155,6 +166,7 @@ def main() -> None:
         adjoints = ("none", "checkpoint", "reversible")
         cases = [("Tsit5", "none"), ("Tsit5", "checkpoint")]
         cases += [(solver, a) for solver in solvers for a in adjoints]
+        cases += [(solver, "none") for solver in IMPLICIT]
         runs = measure_scene(scene, cases, processes)
         tsit5 = runs["Tsit5", "none"]
         t_total = total(tsit5)
@@ -165,6 +177,15 @@ def main() -> None:
             f"{'':27}{t_grad / t_total:5.2f}x"
             f"{'':18}{tsit5['instructions']:6d} {tsit5['kernels']:3d}"
         )
+        for solver in IMPLICIT:
+            theirs = runs[solver, "none"]
+            print(
+                f"{scene:<21} {solver:<22} {theirs['trace']:6.2f} "
+                f"{theirs['lower']:6.2f} {theirs['compile']:7.2f} "
+                f"{total(theirs):6.2f}  {theirs['trace'] / tsit5['trace']:5.2f}x "
+                f"{total(theirs) / t_total:5.2f}x{'':32}"
+                f"{theirs['instructions']:6d} {theirs['kernels']:3d}"
+            )
         for solver in solvers:
             ours = runs[solver, "none"]
             ours_total = total(ours)
@@ -179,7 +200,9 @@ def main() -> None:
     print(
         "targets: a variational solve's trace + compile <= 1.5x Tsit5's on the same "
         "term (constrained <= 2x); a gradient's <= 2.5x its forward solve's "
-        "(Tsit5's row: its own checkpointed gradient, for reference)"
+        "(Tsit5's row: its own checkpointed gradient, for reference); "
+        f"{' and '.join(IMPLICIT)}: diffrax's implicit solvers on the same term "
+        "(VeryChord, rtol = atol = 1e-8), for reference"
     )
 
 
