@@ -521,6 +521,93 @@ def test_a_large_constrained_step_is_differentiated_without_lapack():
     assert program.count("name=root_find") == 4
 
 
+def _perturbed_leaves(fn, y0) -> list[bool]:
+    """Which floating-point leaves of `fn(y0)` carry a derivative (not JAX's
+    symbolic zero) when `fn` is linearised at `y0`."""
+    seen = []
+
+    @eqx.filter_custom_jvp
+    def probe(x):
+        return x
+
+    @probe.def_jvp
+    def _(primals, tangents):
+        given = jax.tree.map(lambda _, t: t is not None, primals[0], tangents[0])
+        seen.extend(jax.tree.leaves(given))
+        return primals[0], tangents[0]
+
+    linearised = lambda y: jax.linearize(lambda y: probe(fn(y)), y)[0]
+    jax.eval_shape(linearised, y0)  # Traced, not run.
+    return seen
+
+
+def _read_leaves(fn, x) -> list[bool]:
+    """Which floating-point leaves of `x` (arrays or their shapes) the output of
+    `fn(x)` depends on differentiably (their cotangent is not JAX's symbolic
+    zero)."""
+    seen = []
+
+    @jax.custom_vjp
+    def probe(x):
+        return x
+
+    def forward(x):
+        return jax.tree.map(lambda p: p.value, x), None
+
+    def backward(_, cotangents):
+        zero = jax.custom_derivatives.SymbolicZero
+        seen.extend(not isinstance(c, zero) for c in jax.tree.leaves(cotangents))
+        return (cotangents,)
+
+    probe.defvjp(forward, backward, symbolic_zeros=True)
+
+    def pull_back(x):
+        dynamic, static = eqx.partition(x, eqx.is_inexact_array)
+        out, vjp = jax.vjp(lambda d: fn(eqx.combine(probe(d), static)), dynamic)
+        return vjp(jax.tree.map(jnp.ones_like, out))
+
+    jax.eval_shape(pull_back, x)  # Traced, not run.
+    return seen
+
+
+@pytest.mark.parametrize(
+    "scene, solver",
+    [
+        ("kepler", dvi.MidpointVI()),
+        ("kepler", dvi.Composition(dvi.StormerVerlet(), "kahan_li8")),
+        ("cartesian_pendulum", dvi.MidpointVI()),
+        ("cartesian_pendulum", dvi.TrapezoidalVI()),
+        ("heavy_top", dvi.LGVI()),
+    ],
+    ids=["MidpointVI", "KahanLi8", "constrained", "RATTLE", "LGVI"],
+)
+def test_a_gradient_carries_what_a_step_reads_from_the_start(scene, solver):
+    """The floating-point leaves of a solver's state that carry a derivative are
+    the same at the start as after a step, and are those whose derivative the next
+    step's `y` reads: the compensation and a step's end force, not the guesses of
+    the next root (held without one: a root's derivative is the implicit
+    function theorem's). `RecursiveCheckpointAdjoint`'s loop linearises the step
+    until the set of differentiated carries stops growing, once more for each leaf
+    that a step perturbs but the start does not, and its backward loop linearises
+    it again for the carries whose derivative it reads where the two sets differ
+    (tracing the rigid double pendulum's gradient made 19% fewer Python calls,
+    CHANGELOG)."""
+    scene = dvi.scenes.SCENES[scene]()
+    term = dvi.terms_for(solver, scene.term())
+    h = scene.period / 100
+    step = lambda y, state: solver.step(term, 0.0, h, y, scene.args, state, False)
+    init = lambda y0: solver.init(term, 0.0, h, y0, scene.args)
+    floats = lambda tree: eqx.filter(tree, eqx.is_inexact_array)
+    init_shape = jax.eval_shape(init, scene.y0)
+
+    start = _perturbed_leaves(lambda y0: floats(init(y0)), scene.y0)
+    after_a_step = _perturbed_leaves(lambda y0: floats(step(y0, init(y0))[3]), scene.y0)
+    read = _read_leaves(lambda state: step(scene.y0, state)[0], init_shape)
+    assert any(start)
+    assert start == after_a_step
+    assert [p and r for p, r in zip(start, read)] == start
+
+
 def test_a_gradient_traces_each_kind_of_step_once():
     """Tracing a reversible gradient runs the solver's step in Python once for each
     kind of step it takes: the forward solve's, the inverse step's (from a jump)

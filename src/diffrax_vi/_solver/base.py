@@ -24,7 +24,14 @@ from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, P, Q, RealScalarLike, V
 from .._lagrangian import momentum_offset
-from .._misc import all_finite, at_trace_time, error_if, split_state, state_dtype
+from .._misc import (
+    all_finite,
+    at_trace_time,
+    error_if,
+    perturbed_with,
+    split_state,
+    state_dtype,
+)
 from .._private_api import (
     AdjointTerm,
     known_value,
@@ -489,6 +496,13 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
             type(self).__name__,
         )
         work = None if step.term.force is None else jnp.zeros((), step.dtype)
+        # Both depend on y0 after a step, and so from the start (`perturbed_with`);
+        # not a group's position's compensation, which stays zero (`advance`).
+        if compensation is None or is_euclidean(step.term.lagrangian.space):
+            compensation, work = perturbed_with((compensation, work), y0)
+        else:
+            compensation_p, work = perturbed_with((compensation[1], work), y0)
+            compensation = (compensation[0], compensation_p)
         return step, VIState(method_state(step), compensation, work)
 
     def step(

@@ -21,6 +21,7 @@ when the unconstrained one is (so compositions raise its order) and symplectic o
 constrained phase space $\{g(q) = 0,\ G(q)\,v(q, p) = 0\}$.
 """
 
+import dataclasses
 from collections.abc import Callable
 
 import diffrax as dfx
@@ -139,7 +140,7 @@ def constrained_step(
     )
     # The inverse step's projection gives this step's multipliers
     # (`unknowns.inverse_root`).
-    state = eqx.tree_at(lambda s: s.projection, out.state, projected.multiplier)
+    state = dataclasses.replace(out.state, projection=projected.multiplier)
     return MethodStep(
         out.dq, tree_add(out.dp, projected.impulse), out.v, state, result, out.work
     )

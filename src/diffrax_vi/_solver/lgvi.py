@@ -27,6 +27,7 @@ from typing import ClassVar
 
 import diffrax as dfx
 import equinox as eqx
+import jax.lax as lax
 import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool
@@ -62,6 +63,12 @@ class LGVIState(eqx.Module):
     last: Array
     before_last: Array
     regular: Bool[Array, ""]
+
+    def __init__(self, torque, last, before_last, regular):
+        self.torque = torque
+        # Guesses (`unknowns.Unknowns`): held without a derivative.
+        self.last, self.before_last = lax.stop_gradient((last, before_last))
+        self.regular = regular
 
 
 def _rigid_body(step: StepInputs) -> AbstractRigidBodyLagrangian:

@@ -27,6 +27,7 @@ import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.flatten_util
+import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import optimistix as optx
@@ -61,6 +62,15 @@ class RattleState(eqx.Module):
     multipliers: Array
     previous: Array
     projection: Array
+
+    def __init__(self, force, jacobian, regular, multipliers, previous, projection):
+        self.force = force
+        self.jacobian = jacobian
+        self.regular = regular
+        # Guesses (`unknowns.Unknowns`): held without a derivative.
+        self.multipliers, self.previous, self.projection = lax.stop_gradient(
+            (multipliers, previous, projection)
+        )
 
 
 def rattle_init(step: StepInputs, force) -> RattleState:

@@ -8,7 +8,7 @@ import jax.tree_util as jtu
 from jaxtyping import ArrayLike, Bool, PyTree
 
 from .._custom_types import Args, P, Q, RealScalarLike
-from .._misc import all_finite, split_state, tree_add
+from .._misc import all_finite, perturbed_with, split_state, tree_add
 from .base import (
     AbstractComposableSolver,
     AbstractSymplecticSolver,
@@ -122,7 +122,7 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractComposableSolver):
         q0, p0 = split_state(y0)
         force = poisoned_force(term_p.vf(t0, q0, args), y0)
         state = VerletState(force, initial_compensation(y0, self.compensated))
-        return check_times(t0, t1, state)
+        return perturbed_with(check_times(t0, t1, state), y0)
 
     def step(
         self,

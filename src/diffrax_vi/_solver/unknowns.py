@@ -126,6 +126,16 @@ class Unknowns(eqx.Module):
     start: dfx.RESULTS
     projection: Array | None = None
 
+    def __init__(self, last, before_last, carry, positive, start, projection=None):
+        # Guesses and aids, none of them differentiated (a root's derivative is the
+        # implicit function theorem's, `_root_finders._implicit_solve`): held
+        # without one, they are not carries of a gradient's loop.
+        self.last, self.before_last, self.carry, self.projection = lax.stop_gradient(
+            (last, before_last, carry, projection)
+        )
+        self.positive = positive
+        self.start = start
+
 
 class StepEquations(eqx.Module):
     """The equations of one implicit step, as its method builds them.
