@@ -217,13 +217,14 @@ def perturbed_with(state: PyTree, y0: PyTree) -> PyTree:
     """`state`, whose floating-point leaves all carry a derivative (zero where they
     do not depend on it) wherever `state` or `y0` carries one.
 
-    A solver's state starts partly constant (compensation, multipliers at zero) and
-    depends on `y0` after its first step. `RecursiveCheckpointAdjoint`'s loop
-    (`equinox.internal.checkpointed_while_loop`) finds which of its carries it
-    differentiates by linearising the step until that set stops growing: once more
-    for each carry that a step perturbs but the start does not. A state perturbed
-    from the start is that set at once, so the step is linearised once instead of
-    two or three times; the compiled program is the same."""
+    Parts of a solver's state start constant (the compensation of its sums, the
+    work of its forces) and depend on `y0` after its first step.
+    `RecursiveCheckpointAdjoint`'s loop (`equinox.internal.checkpointed_while_loop`)
+    finds which of its carries it differentiates by linearising the step until that
+    set stops growing: once more for each carry that a step perturbs but the start
+    does not. A state perturbed from the start is that set at once, so the step is
+    linearised once instead of two or three times; the compiled program is the
+    same."""
     return _perturbed_with(state, y0)
 
 

@@ -121,8 +121,9 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractComposableSolver):
         _, term_p = terms
         q0, p0 = split_state(y0)
         force = poisoned_force(term_p.vf(t0, q0, args), y0)
-        state = VerletState(force, initial_compensation(y0, self.compensated))
-        return perturbed_with(check_times(t0, t1, state), y0)
+        # The compensation depends on y0 after a step, and so from the start.
+        compensation = perturbed_with(initial_compensation(y0, self.compensated), y0)
+        return check_times(t0, t1, VerletState(force, compensation))
 
     def step(
         self,
