@@ -110,7 +110,9 @@ def reference(lagrangian, y0, t1, t0=0.0, args=None):
         lambda t, x: jax.flatten_util.ravel_pytree(term.vf(t, unravel(x), args))[0]
     )
     sol = scipy.integrate.solve_ivp(
-        lambda t, x: np.asarray(rhs(t, jnp.asarray(x))),
+        # t as one type: scipy passes a float first and np.float64 after, which
+        # jit would compile for twice (a weak type and a strong one).
+        lambda t, x: np.asarray(rhs(np.float64(t), jnp.asarray(x))),
         (t0, t1),
         np.asarray(flat),
         method="DOP853",

@@ -533,10 +533,12 @@ def test_jit_vmap_grad_through_forced_and_constrained_solves():
     batched = jax.jit(jax.vmap(final_x))(gs)
     assert max_abs_diff(batched, jnp.stack([single(g) for g in gs])) < 1e-13
 
-    # vmap over damping coefficients equals a loop
+    # vmap over damping coefficients equals a loop (one term, so that the loop's
+    # solves share one compilation)
+    damped = dvi.LagrangianTerm(OSCILLATOR, force=lambda t, q, v, args: -args * v)
+
     def final_q(c):
-        term = dvi.LagrangianTerm(OSCILLATOR, force=lambda t, q, v, args: -args * v)
-        sol = dfx.diffeqsolve(term, dvi.MidpointVI(), 0.0, 2.0, 0.05, Y0, args=c)
+        sol = dfx.diffeqsolve(damped, dvi.MidpointVI(), 0.0, 2.0, 0.05, Y0, args=c)
         return sol.ys[0][-1]
 
     cs = jnp.array([0.0, 0.1, 0.4])
@@ -601,7 +603,9 @@ def _work_reference() -> tuple[float, float]:
 
     q0, p0 = scene.y0
     sol = scipy.integrate.solve_ivp(
-        lambda t, x: np.asarray(rhs(t, jnp.asarray(x))),
+        # t as one type: scipy passes a float first and np.float64 after, which
+        # jit would compile for twice (a weak type and a strong one).
+        lambda t, x: np.asarray(rhs(np.float64(t), jnp.asarray(x))),
         (0.0, scene.period),
         [float(q0), float(p0), 0.0],
         "DOP853",
