@@ -13,6 +13,9 @@ with this file as a pytest plugin, which records in each worker:
   step, a parameter given as a Python number, which `jax.jit` and `eqx.filter_jit`
   treat as static).
 
+A test that runs a fresh process (the docs pages' code, the command line's
+subprocesses) shows its wall time alone: the plugin records the workers.
+
 A program compiled again in a worker that already compiled it is a compilation the
 suite could share (the same function, or the same values passed as arrays). The
 summary (`results/suite_compiles_cpu.txt`) sums the durations, counts the repeated
