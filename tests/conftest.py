@@ -33,6 +33,18 @@ def _freeze_what_the_test_keeps():
     gc.freeze()
 
 
+@pytest.fixture(autouse=True)
+def _patched_code_compiles_afresh(request):
+    """A study keeps the programs it compiles for the rest of the process, keyed by
+    the values they close over, not by the code that traced them
+    (`diffrax_vi.study._programs._Memo`): a test that patches the library starts
+    without them, so that its patch is traced."""
+    if "monkeypatch" in request.fixturenames:
+        from diffrax_vi.study import _programs
+
+        _programs._memo.clear()
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_programs():
     """Drop JAX's compiled programs after each test file. Each one holds memory
@@ -48,6 +60,9 @@ def _release_compiled_programs():
     except OSError:
         crowded = True
     if crowded:
+        from diffrax_vi.study import _programs
+
+        _programs._memo.clear()
         jax.clear_caches()
         gc.unfreeze()
         gc.collect()

@@ -1,6 +1,6 @@
-"""The command line's traced programs kept between runs (`study._programs`): a
-program read back computes what tracing it again would, a changed key traces again,
-and what cannot be kept is traced every time."""
+"""The programs a study compiles, kept within a process and, for the command line,
+between runs (`study._programs`): a program read back computes what tracing it again
+would, a changed key traces again, and what cannot be kept is traced every time."""
 
 import json
 
@@ -13,7 +13,7 @@ from diffrax_vi.study import _programs, _run
 
 
 def _counted(calls: list):
-    def f(x):
+    def f(_, x):
         calls.append(None)  # Once per trace.
         return {"sum": jnp.sum(jnp.sin(x)), "x": (x * 2,)}
 
@@ -23,10 +23,10 @@ def _counted(calls: list):
 def test_a_kept_program_is_read_back_instead_of_traced(tmp_path):
     calls = []
     x = jnp.linspace(0.0, 1.0, 5)
-    expected = _counted([])(x)
+    expected = _counted([])(None, x)
     with _programs.keep_programs(tmp_path, "context"):
-        first = _programs.compiled("f", _counted(calls), x)(x)
-        again = _programs.compiled("f", _counted(calls), x)(x)
+        first = _programs.compiled("f", _counted(calls), None, x)(x)
+        again = _programs.compiled("f", _counted(calls), None, x)(x)
     assert len(calls) == 1 and len(list(tmp_path.iterdir())) == 1
     for out in (first, again):
         assert jax.tree.structure(out) == jax.tree.structure(expected)
@@ -44,7 +44,7 @@ def test_a_program_is_traced_again_when_its_key_changes(tmp_path, change):
     calls = []
     x = jnp.zeros(3)
     with _programs.keep_programs(tmp_path, "a"):
-        _programs.compiled("f", _counted(calls), x)
+        _programs.compiled("f", _counted(calls), None, x)
     context, name, y = "a", "f", x
     if change == "context":
         context = "b"
@@ -55,7 +55,7 @@ def test_a_program_is_traced_again_when_its_key_changes(tmp_path, change):
     else:
         y = jnp.zeros(3, jnp.float32)
     with _programs.keep_programs(tmp_path, context):
-        _programs.compiled(name, _counted(calls), y)
+        _programs.compiled(name, _counted(calls), None, y)
     assert len(calls) == 2 and len(list(tmp_path.iterdir())) == 2
 
 
@@ -81,7 +81,7 @@ def test_a_program_holding_a_host_callback_is_traced_every_time(tmp_path):
     calls = []
 
     def make():
-        def f(x):
+        def f(_, x):
             calls.append(None)
             y = jax.pure_callback(np.cos, jax.ShapeDtypeStruct(x.shape, x.dtype), x)
             return y + 1
@@ -90,7 +90,7 @@ def test_a_program_holding_a_host_callback_is_traced_every_time(tmp_path):
 
     x = jnp.ones(2)
     with _programs.keep_programs(tmp_path, "c"):
-        outs = [_programs.compiled("f", make(), x)(x) for _ in range(2)]
+        outs = [_programs.compiled("f", make(), None, x)(x) for _ in range(2)]
     assert len(calls) == 2 and not any(tmp_path.iterdir())
     assert all(np.allclose(out, np.cos(1.0) + 1) for out in outs)
 
@@ -99,12 +99,12 @@ def test_a_damaged_file_is_replaced(tmp_path):
     calls = []
     x = jnp.arange(3.0)
     with _programs.keep_programs(tmp_path, "d"):
-        _programs.compiled("f", _counted(calls), x)
+        _programs.compiled("f", _counted(calls), None, x)
         (path,) = tmp_path.iterdir()
         path.write_bytes(path.read_bytes()[:100])
-        out = _programs.compiled("f", _counted(calls), x)(x)
+        out = _programs.compiled("f", _counted(calls), None, x)(x)
         assert len(calls) == 2 and np.allclose(out["sum"], jnp.sum(jnp.sin(x)))
-        _programs.compiled("f", _counted(calls), x)
+        _programs.compiled("f", _counted(calls), None, x)
     assert len(calls) == 2
 
 
@@ -114,7 +114,7 @@ def test_a_folder_it_cannot_write_is_a_warning_not_a_failure(tmp_path):
     x = jnp.arange(2.0)
     with _programs.keep_programs(blocked / "programs", "f"):
         with pytest.warns(RuntimeWarning, match="cannot keep the solves"):
-            out = _programs.compiled("f", _counted([]), x)(x)
+            out = _programs.compiled("f", _counted([]), None, x)(x)
     assert np.allclose(out["sum"], jnp.sum(jnp.sin(x)))
 
 
@@ -122,7 +122,7 @@ def test_outside_keep_programs_nothing_is_kept(tmp_path):
     calls = []
     x = jnp.ones(2)
     for _ in range(2):
-        _programs.compiled("f", _counted(calls), x)
+        _programs.compiled("f", _counted(calls), None, x)
     assert len(calls) == 2
 
 
@@ -168,6 +168,7 @@ def test_a_repeated_study_reads_its_programs_back(tmp_path, monkeypatch):
     argv += ["--solvers", "StormerVerlet,Tsit5"]
     rows = []
     for out in ("a", "b"):
+        _programs._memo.clear()  # Each run as a fresh process does it.
         assert main([*argv, "--out", str(tmp_path / out)]) == 0
         summary = json.loads((tmp_path / out / "drift.json").read_text())["summary"]
         for row in summary:
@@ -181,3 +182,84 @@ def test_a_repeated_study_reads_its_programs_back(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "off"))
     assert main([*argv, "--no-cache", "--out", str(tmp_path / "c")]) == 0
     assert len(traced) == 4 and not (tmp_path / "off").exists()
+
+
+def test_a_study_run_again_in_the_process_reuses_its_programs(monkeypatch):
+    """A notebook's cell rerun: a study of a new but equal scene compiles none of its
+    solves and tables the same errors. Another start is an argument of the same
+    programs; another value of a parameter the solves close over compiles them
+    again."""
+    import equinox as eqx
+    from diffrax_vi.scenes import kepler
+    from diffrax_vi.study import drift
+
+    compiles = []
+    original = _programs._compile
+
+    def counting(*args):
+        compiles.append(None)
+        return original(*args)
+
+    monkeypatch.setattr(_programs, "_compile", counting)
+    heavier = eqx.tree_at(lambda s: s.lagrangian.mu, kepler(), jnp.asarray(1.2))
+    studies, compiled = [], []
+    for scene in (kepler(), kepler(), kepler(0.5), heavier):
+        before = len(compiles)
+        studies.append(
+            drift(scene, ["MidpointVI", "Tsit5"], periods=2, steps_per_period=50)
+        )
+        compiled.append(len(compiles) - before)
+    assert compiled == [4, 0, 0, 4]
+    assert all(run.result == "successful" for study in studies for run in study.runs)
+    for first, again, *others in zip(*(study.runs for study in studies)):
+        assert np.array_equal(first.errors["energy"], again.errors["energy"])
+        for other in others:
+            assert not np.allclose(
+                first.errors["energy"][1:], other.errors["energy"][1:]
+            )
+
+
+def test_the_process_key_is_the_value_of_what_a_program_closes_over():
+    key = _programs._Memo.key
+
+    def f(constants, x):
+        return x
+
+    x = jnp.zeros(2)
+    same = dict(a=jnp.arange(3.0), b=1.0, g=jnp.sin)
+    assert key("f", f, same, (x,), False) == key("f", f, dict(same), (x,), False)
+    for other in [
+        dict(same, a=jnp.array([0.0, 1.0, 2.0 + 1e-12])),
+        dict(same, a=jnp.arange(3.0, dtype=jnp.float32)),
+        dict(same, b=2.0),
+        dict(same, b=1),  # An int traces otherwise than a float.
+        dict(same, g=jnp.cos),
+        dict(same, c=None),  # Another structure.
+    ]:
+        assert key("f", f, other, (x,), False) != key("f", f, same, (x,), False)
+    assert key("f", f, same, (jnp.zeros(3),), False) != key("f", f, same, (x,), False)
+    assert key("f", f, same, (x,), True) != key("f", f, same, (x,), False)
+    assert key("g", f, same, (x,), False) != key("f", f, same, (x,), False)
+    # JAX's settings are part of a trace.
+    before = key("f", f, same, (x,), False)
+    setting = jax.config.jax_numpy_rank_promotion
+    jax.config.update(
+        "jax_numpy_rank_promotion", "warn" if setting != "warn" else "allow"
+    )
+    try:
+        assert key("f", f, same, (x,), False) != before
+    finally:
+        jax.config.update("jax_numpy_rank_promotion", setting)
+    # A leaf that cannot be hashed has no key: its program is compiled every time.
+    assert key("f", f, dict(same, d=bytearray(b"x")), (x,), False) is None
+
+
+def test_the_process_keeps_only_the_latest_programs():
+    memo = _programs._Memo(size=2)
+    programs = {k: (lambda: k) for k in "abcd"}
+    for k in "abc":
+        memo.put(k, programs[k])
+    assert memo.get("a") is None and memo.get("b") is programs["b"]
+    memo.put("d", programs["d"])  # "b" was used last: "c" goes.
+    assert memo.get("c") is None
+    assert memo.get("b") is programs["b"] and memo.get("d") is programs["d"]

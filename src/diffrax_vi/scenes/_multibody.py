@@ -3,6 +3,7 @@ centres of mass `x`, shape `(n, 3)`, and the attitudes `R`, shape `(n, 3, 3)`; t
 joints are holonomic constraints on `q`."""
 
 import jax.numpy as jnp
+import jax.tree_util as jtu
 import numpy as np
 from jaxtyping import Array, Float
 
@@ -91,12 +92,9 @@ def orthogonality(t, y, args) -> Array:
     return rotation_departure(R)
 
 
-def _constraint_residual(constraint):
-    def residual(t, y, args):
-        """$\\max|g(q)|$: zero on the constraint manifold."""
-        return jnp.max(jnp.abs(constraint(t, y[0], args)))
-
-    return residual
+def _constraint_residual(constraint, t, y, args):
+    """$\\max|g(q)|$: zero on the constraint manifold."""
+    return jnp.max(jnp.abs(constraint(t, y[0], args)))
 
 
 def _scene(name, lagrangian, y0, constraint, period) -> Scene:
@@ -109,7 +107,7 @@ def _scene(name, lagrangian, y0, constraint, period) -> Scene:
         constraint=constraint,
         invariants=dict(
             vertical_momentum=vertical_momentum,
-            constraint=_constraint_residual(constraint),
+            constraint=jtu.Partial(_constraint_residual, constraint),
             orthogonality=orthogonality,
         ),
     )

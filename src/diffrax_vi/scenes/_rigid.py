@@ -115,10 +115,20 @@ def heavy_top(
         period=2 * float(jnp.pi) / spin,
         invariants=dict(
             vertical_momentum=vertical_momentum,
-            spin=lambda t, y, args: y[1][2],
+            spin=body_spin,
             orthogonality=orthogonality,
         ),
     )
+
+
+def body_spin(t, y, args) -> Array:
+    r"""$\Pi_3$, the spin about the top's axis: conserved by a symmetric top."""
+    return y[1][2]
+
+
+def body_orthogonality(t, y, args) -> Array:
+    """`orthogonality` of the body of a state `((x, R), (p, Pi))` on R^3 x SO(3)."""
+    return orthogonality(t, (y[0][1], y[1][1]), args)
 
 
 def vertical_momentum(t, y, args) -> Array:
@@ -233,7 +243,7 @@ def satellite(
         period=2 * float(jnp.pi),
         invariants=dict(
             angular_momentum=total_angular_momentum,
-            orthogonality=lambda t, y, args: orthogonality(t, (y[0][1], y[1][1]), args),
+            orthogonality=body_orthogonality,
         ),
     )
 

@@ -73,7 +73,11 @@ class Scene(eqx.Module):
         listed (the drift study checks the energy balance instead)."""
         if self.force is not None:
             return dict(self.invariants)
-        return {"energy": self.energy, **self.invariants}
+        # The Lagrangian's energy, not the bound `self.energy`, which would carry
+        # the whole scene (its exact solution, a new function for each scene built)
+        # into the structure of what a study compiles, and into its key.
+        energy = jtu.Partial(energy_value, self.lagrangian)
+        return {"energy": energy, **self.invariants}
 
     def perturbed(
         self, key: PRNGKeyArray, n: int, spread: float = 1e-3

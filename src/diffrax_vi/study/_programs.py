@@ -1,4 +1,5 @@
-"""Traced programs kept between runs of the command line.
+"""Compiled programs kept within a process, and traced ones kept between runs of the
+command line.
 
 JAX's persistent compilation cache skips XLA on a repeated study, not the tracing
 before it, which JAX repeats in every process: with XLA's work read back, tracing
@@ -15,8 +16,14 @@ the caller's `context` (the command line passes its options, from which it build
 the scene and the methods), the program's name, its arguments' structure, shapes and
 dtypes, and JAX's settings (64-bit floats, `JAX_*` variables, the devices). A
 program that holds a host callback cannot be exported (JAX serialises none); it is
-traced every time, as without this cache."""
+traced every time, as without this cache.
 
+Within one process, `compiled` also keeps the programs it compiles last, keyed by the
+values of what they are closed over (`_Memo`): a study run again (a notebook's cell
+rerun on the same scene, with new but equal objects) reuses them, as `jax.jit` reuses
+a compiled function called again with the same static arguments."""
+
+import collections
 import contextlib
 import dataclasses
 import functools
@@ -27,10 +34,12 @@ import os
 import pathlib
 import sys
 import tempfile
+import threading
 import warnings
 from collections.abc import Callable, Iterator
 
 import jax
+import numpy as np
 from jaxtyping import PyTree
 
 
@@ -120,12 +129,98 @@ def _write(path: pathlib.Path, data: bytearray) -> None:
         raise
 
 
-def compiled(name: str, fn: Callable, *args: PyTree) -> Callable:
-    """`fn` compiled for `args`; under `keep_programs`, the program is
-    read back from its file where a run with the same key exported it, and exported
-    there otherwise. `fn` takes and returns arrays in tuples, lists and dicts (what
-    `jax.export` serialises); `name` tells apart the programs of one context."""
-    jitted = jax.jit(fn)
+class _Memo:
+    """The programs `compiled` made last in this process (at most `size`), keyed by
+    everything a trace depends on: the program's name and function, the value of
+    every array and scalar it is closed over (a digest of its bytes, dtype, shape
+    and weak type), the identity of every other leaf (a function, as `jax.jit`
+    keys its own cache), the tree's structure (with its static fields), its
+    arguments' structure, shapes and dtypes, JAX's configuration and the kept
+    programs' folder. Closures whose leaves cannot be keyed (an unhashable leaf)
+    are compiled every time."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self.programs: collections.OrderedDict = collections.OrderedDict()
+        self.lock = threading.Lock()  # The studies compile on worker threads.
+
+    @staticmethod
+    def key(name: str, fn: Callable, constants: PyTree, args: tuple, vmapped: bool):
+        leaves, structure = jax.tree.flatten(constants)
+        values = []
+        for leaf in leaves:
+            if isinstance(leaf, (jax.Array, np.ndarray, np.generic)):
+                value = np.asarray(leaf)
+                digest = hashlib.sha256(value.tobytes()).hexdigest()
+                weak = getattr(leaf, "weak_type", False)
+                values.append((value.dtype.str, value.shape, weak, digest))
+            elif isinstance(leaf, (bool, int, float, complex)):
+                values.append((type(leaf), leaf))  # 1 == 1.0 == True.
+            else:
+                values.append(leaf)
+        shapes = tuple(
+            (x.dtype, x.shape, getattr(x, "sharding", None))
+            for x in jax.tree.leaves(args)
+        )
+        config = tuple(sorted(jax.config.values.items()))
+        key = (name, fn, vmapped, structure, tuple(values))
+        key += (jax.tree.structure(args), shapes, config, _kept)
+        try:
+            hash(key)
+        except TypeError:
+            return None
+        return key
+
+    def clear(self) -> None:
+        with self.lock:
+            self.programs.clear()
+
+    def get(self, key) -> Callable | None:
+        if key is None:
+            return None
+        with self.lock:
+            program = self.programs.get(key)
+            if program is not None:
+                self.programs.move_to_end(key)
+            return program
+
+    def put(self, key, program: Callable) -> None:
+        if key is None:
+            return
+        with self.lock:
+            self.programs[key] = program
+            while len(self.programs) > self.size:
+                self.programs.popitem(last=False)
+
+
+# A drift study of six methods compiles twelve programs.
+_memo = _Memo(size=48)
+
+
+def compiled(
+    name: str, fn: Callable, constants: PyTree, *args: PyTree, vmapped: bool = False
+) -> Callable:
+    """`fn(constants, *args)` compiled for `args`, the arrays of `constants`
+    constants of the program (as a closure's are), and vmapped over `args` if
+    `vmapped`. The same program compiled before in this process for equal
+    `constants` and arguments of the same shapes is reused (`_Memo`). Under
+    `keep_programs`, the program is read back from its file where a run with the
+    same key exported it, and exported there otherwise. `fn` takes and returns
+    arrays in tuples, lists and dicts (what `jax.export` serialises); `name` tells
+    apart the programs of one context."""
+    key = _memo.key(name, fn, constants, args, vmapped)
+    program = _memo.get(key)
+    if program is None:
+        program = _compile(name, fn, constants, args, vmapped)
+        _memo.put(key, program)
+    return program
+
+
+def _compile(
+    name: str, fn: Callable, constants: PyTree, args: tuple, vmapped: bool
+) -> Callable:
+    closure = functools.partial(fn, constants)
+    jitted = jax.jit(jax.vmap(closure) if vmapped else closure)
     if _kept is None:
         return jitted.lower(*args).compile()
     path = _kept.path(name, args)

@@ -332,31 +332,31 @@ def prepare(
         scan=fixed and not progress,
         progress=progress,
     )
-    vmapped = jax.vmap if ensemble else lambda f: f
-    # Closures over `solves`: its arrays are constants of the compiled solves. The
-    # tracked solve returns arrays only, its result as a code (`_coded`), which a
-    # program kept between runs (`compiled`) needs.
-    tracked = vmapped(lambda y0: _coded(solves.tracked(y0)))
-    plain = vmapped(lambda y0: solves.plain(y0))
+    # The arrays of `solves` are constants of the compiled solves, as a closure's.
     name = f"{method.name}, {t1}, {n_steps}, {n_save}, {dtype}, {ensemble}, {progress}"
     return Prepared(
         scene,
         y0,
         ensemble,
         n_save,
-        compiled(f"tracked {name}", tracked, y0),
-        compiled(f"plain {name}", plain, y0),
+        compiled(f"tracked {name}", _tracked, solves, y0, vmapped=ensemble),
+        compiled(f"plain {name}", _plain, solves, y0, vmapped=ensemble),
     )
 
 
-def _coded(outputs: tuple) -> tuple:
-    """The tracked solve's outputs with its `RESULTS` as the array of its code."""
-    *rest, result = outputs
+def _tracked(solves: _Solves, y0: PyTree[Array]) -> tuple:
+    """The tracked solve, returning arrays only: its result as the array of its
+    code, which a program kept between runs (`compiled`) needs."""
+    *rest, result = solves.tracked(y0)
     return (*rest, jax.tree.leaves(result)[0])
 
 
+def _plain(solves: _Solves, y0: PyTree[Array]) -> PyTree[Array]:
+    return solves.plain(y0)
+
+
 def _result(code: np.ndarray) -> dfx.RESULTS:
-    """The `RESULTS` of a code from `_coded` (an array, as equinox reads one)."""
+    """The `RESULTS` of a code from `_tracked` (an array, as equinox reads one)."""
     return jax.tree.unflatten(jax.tree.structure(dfx.RESULTS.successful), [code])
 
 
