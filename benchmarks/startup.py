@@ -8,12 +8,11 @@ Every time is the wall time of a fresh process, as a user starts it:
 - `diffrax-vi --help` and two refused options (`--scene nope`, and an `--out`
   folder that holds a file), which the entry point answers without importing JAX;
 - the main job with `--no-cache`, then on an empty cache (cold), then again on that
-  cache (warm): the cache keeps each traced program (`jax.export`) and what XLA
-  compiled from it, and the warm run reads both back instead of tracing and
-  compiling (not for programs that hold a host callback, which JAX serialises
-  neither way);
+  cache (warm): the cache keeps each solve as XLA compiled it (its executable),
+  and the warm run loads it instead of tracing, lowering and compiling (not for
+  programs that hold a host callback, which no cache keeps);
 - a second warm run, which also records the span in which the study readies its
-  solves (`prepare` and `track`: reading back, compiling, the untimed tracked runs,
+  solves (`prepare` and `track`: loading or compiling, the untimed tracked runs,
   from the first start to the last end, on both cores), and the rest of the run
   (start-up, imports, the timed runs, the tables and figures).
 

@@ -126,9 +126,10 @@ def test_outside_keep_programs_nothing_is_kept(tmp_path):
     assert len(calls) == 2
 
 
-def test_a_kept_solve_compiles_to_the_program_its_trace_does(tmp_path):
-    """The study times the kept program: XLA's optimised program of it is the one
-    it makes of the solve traced in the process, instruction for instruction."""
+def test_a_kept_solve_is_the_program_its_trace_compiles_to(tmp_path):
+    """The study times the kept program: loaded in a later run, it is the program
+    XLA makes of the solve traced in the process, instruction for instruction, and
+    computes the same numbers."""
     import collections
     import re
 
@@ -136,10 +137,12 @@ def test_a_kept_solve_compiles_to_the_program_its_trace_does(tmp_path):
     from diffrax_vi.study import as_method
 
     scene, method = kepler(), as_method("MidpointVI")
-    settings = dict(t1=scene.period, n_steps=20, n_save=2, dtype=jnp.float64)
+    settings = dict(t1=scene.period, n_steps=100, n_save=2, dtype=jnp.float64)
     direct = _run.prepare(scene, method, y0=scene.y0, **settings)
-    with _programs.keep_programs(tmp_path, "e"):
-        kept = _run.prepare(scene, method, y0=scene.y0, **settings)
+    for _ in range(2):  # Kept, then loaded.
+        _programs._memo.clear()
+        with _programs.keep_programs(tmp_path, "e"):
+            kept = _run.prepare(scene, method, y0=scene.y0, **settings)
     assert len(list(tmp_path.iterdir())) == 2
 
     def instructions(compiled):
@@ -147,7 +150,11 @@ def test_a_kept_solve_compiles_to_the_program_its_trace_does(tmp_path):
         return collections.Counter(re.findall(r" = \S+ ([\w-]+)\(", text))
 
     for a, b in [(direct.plain, kept.plain), (direct.tracked, kept.tracked)]:
+        assert a is not b
         assert instructions(a) == instructions(b) and sum(instructions(a).values())
+        outputs = [jax.tree.leaves(f(scene.y0)) for f in (a, b)]
+        assert all(np.all(np.isfinite(x)) for x in outputs[0])
+        assert all(np.array_equal(x, y) for x, y in zip(*outputs))
 
 
 def test_a_repeated_study_reads_its_programs_back(tmp_path, monkeypatch):
@@ -263,3 +270,27 @@ def test_the_process_keeps_only_the_latest_programs():
     memo.put("d", programs["d"])  # "b" was used last: "c" goes.
     assert memo.get("c") is None
     assert memo.get("b") is programs["b"] and memo.get("d") is programs["d"]
+
+
+def test_a_program_in_jaxs_persistent_cache_is_kept_whole(tmp_path, monkeypatch):
+    """An executable that JAX loads from its persistent cache, serialised again,
+    lacks some of its kernels (XLA's "Function ... not found" when run): a program
+    is kept as XLA compiles it, so it runs when loaded even where JAX's cache
+    already held it."""
+    from diffrax_vi.cli import compilation_cache
+    from diffrax_vi.scenes import kepler
+    from diffrax_vi.study import as_method
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    scene, method = kepler(), as_method("MidpointVI")
+    settings = dict(t1=scene.period, n_steps=100, n_save=2, dtype=jnp.float64)
+    with compilation_cache():
+        direct = _run.prepare(scene, method, y0=scene.y0, **settings)  # JAX's cache.
+        for _ in range(2):  # Kept, then loaded.
+            _programs._memo.clear()
+            with _programs.keep_programs(tmp_path / "programs", "h"):
+                kept = _run.prepare(scene, method, y0=scene.y0, **settings)
+    assert len(list((tmp_path / "programs").iterdir())) == 2
+    for a, b in [(direct.plain, kept.plain), (direct.tracked, kept.tracked)]:
+        outputs = [jax.tree.leaves(f(scene.y0)) for f in (a, b)]
+        assert all(np.array_equal(x, y) for x, y in zip(*outputs))

@@ -28,6 +28,7 @@ from diffrax_vi._private_api import (
     NoForwardingSolverMeta,
     nondiff_solver_controller_state,
     only_transpose_ys,
+    persistent_cache,
     promote_result,
     save_y,
     unvmap_any,
@@ -402,6 +403,17 @@ def test_private_api_assumptions():
             item = getattr(results, name)
             assert promote_result(cls, item) == cls.promote(item)
             assert promote_result(cls, item) == getattr(cls, name)
+    # JAX's switch of its persistent cache: a `with` block sets it in its thread.
+    import threading
+
+    before, inside, other = persistent_cache.value, [], []
+    with persistent_cache(not before):
+        inside.append(persistent_cache.value)
+        thread = threading.Thread(target=lambda: other.append(persistent_cache.value))
+        thread.start()
+        thread.join()
+    assert inside == [not before] and other == [before]
+    assert persistent_cache.value == before
     # An implicit solver's root finder leaves its tolerances to the controller.
     assert dfx.Kvaerno5().root_finder.rtol is use_stepsize_tol
     # BacksolveAdjoint's backward solve hands the solver an AdjointTerm.

@@ -118,8 +118,8 @@ def _output(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="do not keep traced and compiled programs in $XDG_CACHE_HOME/diffrax-vi "
         "(by default ~/.cache/diffrax-vi; JAX's persistent compilation cache in "
-        "jax/, the exported solves in programs/), which let a repeated study skip "
-        "tracing and compilation",
+        "jax/, the studies' compiled solves in programs/), which let a repeated "
+        "study skip tracing and compilation",
     )
 
 

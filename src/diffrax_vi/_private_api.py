@@ -36,6 +36,9 @@ from equinox._enum import EnumerationItem  # An enumeration's item from its valu
 from jax._src.compilation_cache import (  # The persistent cache, set up once.
     reset_cache as reset_compilation_cache,
 )
+
+# The persistent cache on or off in this thread (`with persistent_cache(False):`).
+from jax._src.config import enable_compilation_cache as persistent_cache
 from jax._src.core import Literal  # A constant operand of a traced equation.
 from jax._src.interpreters.partial_eval import (  # A value being traced into a jaxpr.
     DynamicJaxprTracer,
@@ -55,6 +58,7 @@ __all__ = [
     "promote_result",
     "reset_compilation_cache",
     "only_transpose_ys",
+    "persistent_cache",
     "save_y",
     "NoForwardingSolverMeta",
     "unvmap_any",

@@ -299,17 +299,19 @@ def compilation_cache(enabled: bool = True):
 
 
 def programs_dir() -> pathlib.Path:
-    """Where the command line keeps the solves its studies trace, exported by
-    `jax.export`, so that a repeated study reads them back instead of tracing them:
-    `$XDG_CACHE_HOME/diffrax-vi/programs`, beside [`diffrax_vi.cli.cache_dir`][].
-    Each is keyed by the command's options, the shapes of its arguments and the
-    source files of diffrax_vi and of the libraries it traces through; `--no-cache`
-    neither reads nor writes them."""
+    """Where the command line keeps the solves its studies compile, XLA's
+    executables, so that a repeated study loads them instead of tracing and
+    compiling them: `$XDG_CACHE_HOME/diffrax-vi/programs`, beside
+    [`diffrax_vi.cli.cache_dir`][]. Each is keyed by the command's options, the
+    shapes of its arguments, the source files of diffrax_vi and of the libraries it
+    traces through, and what XLA compiles for (`XLA_FLAGS`, the processor);
+    `--no-cache` neither reads nor writes them. Like JAX's own cache, the folder
+    holds machine code that the command runs: keep it your own."""
     return cache_dir().parent / "programs"
 
 
 def _kept_programs(args: argparse.Namespace):
-    """The studies' traced programs kept in `programs_dir`, keyed by the options
+    """The studies' compiled programs kept in `programs_dir`, keyed by the options
     that build the scene and the methods (not where the results go)."""
     if args.no_cache:
         return contextlib.nullcontext()
@@ -338,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
     It runs at the XLA setting that `import diffrax_vi` chose
     ([`diffrax_vi.compile_small_loops_whole`][]), the same for every method, and
     keeps its compiled programs in JAX's persistent compilation cache
-    ([`diffrax_vi.cli.compilation_cache`][]) and its traced ones in
+    ([`diffrax_vi.cli.compilation_cache`][]) and its studies' compiled solves in
     [`diffrax_vi.cli.programs_dir`][] unless `--no-cache` is given."""
     return _main(argv)
 

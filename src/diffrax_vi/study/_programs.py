@@ -1,22 +1,21 @@
-"""Compiled programs kept within a process, and traced ones kept between runs of the
-command line.
+"""Compiled programs kept within a process, and between runs of the command line.
 
 JAX's persistent compilation cache skips XLA on a repeated study, not the tracing
-before it, which JAX repeats in every process: with XLA's work read back, tracing
-was most of what a repeated main job spent readying its solves. A study run under
-`keep_programs` exports each solve it traces (`jax.export`, StableHLO) into a file
-named by a key of everything the program depends on, and a later run with the same
-key reads the file back instead of tracing. The program it then compiles is the
-exported one in both runs, so the compilation cache holds it too, and XLA makes of
-it the program it makes of the trace.
+and lowering before it, which JAX repeats in every process to find the program's
+key. A study run under `keep_programs` keeps each solve it compiles, XLA's
+executable itself (`jax.experimental.serialize_executable`), in a file named by a
+key of everything the program depends on, and a later run with the same key loads
+the executable from the file instead of tracing, lowering and compiling: the timed
+program is the one the first run compiled.
 
 The key is the code (the size and modification time of every source file of this
 package and of diffrax, equinox, optimistix, lineax and JAX, and jaxlib's version),
 the caller's `context` (the command line passes its options, from which it builds
 the scene and the methods), the program's name, its arguments' structure, shapes and
-dtypes, and JAX's settings (64-bit floats, `JAX_*` variables, the devices). A
-program that holds a host callback cannot be exported (JAX serialises none); it is
-traced every time, as without this cache.
+dtypes, JAX's settings (64-bit floats, `JAX_*` variables, the devices), and what XLA
+compiles for (`XLA_FLAGS`, the backend's version, the processor and its features). A
+program that holds a host callback cannot be kept (its executable calls back into
+this process); it is traced every time, as without this cache.
 
 Within one process, `compiled` also keeps the programs it compiles last, keyed by the
 values of what they are closed over (`_Memo`): a study run again (a notebook's cell
@@ -32,6 +31,8 @@ import importlib.metadata
 import importlib.util
 import os
 import pathlib
+import pickle
+import platform
 import sys
 import tempfile
 import threading
@@ -40,7 +41,10 @@ from collections.abc import Callable, Iterator
 
 import jax
 import numpy as np
+from jax.experimental import serialize_executable
 from jaxtyping import PyTree
+
+from .._private_api import persistent_cache
 
 
 # Whose source files the traced programs depend on.
@@ -74,9 +78,27 @@ def _code() -> str:
     return digest.hexdigest()
 
 
+@functools.cache
+def _machine() -> str:
+    """What XLA compiles for: `XLA_FLAGS`, the backend's version, the processor and,
+    on Linux, its model and features (an executable compiled for one processor's
+    instructions may not run on another's, in a cache folder shared between
+    machines)."""
+    backend = jax.devices()[0].client
+    parts = [os.environ.get("XLA_FLAGS", ""), backend.platform_version]
+    parts += [platform.machine(), platform.processor()]
+    try:
+        with open("/proc/cpuinfo") as info:
+            lines = [line for line in info if line.startswith(("model name", "flags"))]
+        parts += sorted(set(lines))
+    except OSError:
+        pass
+    return "\n".join(parts)
+
+
 @dataclasses.dataclass(frozen=True)
 class _Programs:
-    """The folder of exported programs and the context of their keys."""
+    """The folder of kept programs and the context of their keys."""
 
     directory: pathlib.Path
     context: str
@@ -87,6 +109,7 @@ class _Programs:
         key = "\n".join(
             [
                 _code(),
+                _machine(),
                 self.context,
                 name,
                 str(jax.tree.structure(args)),
@@ -97,7 +120,7 @@ class _Programs:
                 f"{devices[0].platform} x{len(devices)}",
             ]
         )
-        return self.directory / f"{hashlib.sha256(key.encode()).hexdigest()}.jaxexport"
+        return self.directory / f"{hashlib.sha256(key.encode()).hexdigest()}.xla"
 
 
 # Set by `keep_programs` (as JAX's own configuration is, for the process): the
@@ -105,17 +128,19 @@ class _Programs:
 _kept: _Programs | None = None
 
 
-def _read(path: pathlib.Path) -> "jax.export.Exported | None":
+def _read(path: pathlib.Path) -> Callable | None:
+    """The compiled program kept in `path`, loaded; `None` if there is none."""
     try:
-        return jax.export.deserialize(bytearray(path.read_bytes()))
+        data, in_tree, out_tree = pickle.loads(path.read_bytes())
+        return serialize_executable.deserialize_and_load(data, in_tree, out_tree)
     except Exception:
         # None kept yet; or a file cut short, or written by another version of JAX,
-        # for which flatbuffers and JAX raise several kinds of error: traced again
-        # and replaced.
+        # for which pickle, JAX and XLA raise several kinds of error: compiled
+        # again and replaced.
         return None
 
 
-def _write(path: pathlib.Path, data: bytearray) -> None:
+def _write(path: pathlib.Path, data: bytes) -> None:
     """Write `data` so that no reader sees part of it (another run may read the
     same key at once)."""
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -204,10 +229,10 @@ def compiled(
     constants of the program (as a closure's are), and vmapped over `args` if
     `vmapped`. The same program compiled before in this process for equal
     `constants` and arguments of the same shapes is reused (`_Memo`). Under
-    `keep_programs`, the program is read back from its file where a run with the
-    same key exported it, and exported there otherwise. `fn` takes and returns
-    arrays in tuples, lists and dicts (what `jax.export` serialises); `name` tells
-    apart the programs of one context."""
+    `keep_programs`, the compiled program is loaded from its file where a run with
+    the same key kept it, and kept there otherwise. `fn` takes and returns arrays
+    in tuples, lists and dicts (a kept program's structures are pickled); `name`
+    tells apart the programs of one context."""
     key = _memo.key(name, fn, constants, args, vmapped)
     program = _memo.get(key)
     if program is None:
@@ -224,36 +249,39 @@ def _compile(
     if _kept is None:
         return jitted.lower(*args).compile()
     path = _kept.path(name, args)
-    exported = _read(path)
-    if exported is None:
-        traced = jitted.trace(*args)
-        if _holds_callback(traced.jaxpr.jaxpr):
-            return traced.lower().compile()
-        try:
-            # Traced already: the export lowers the same trace.
-            exported = jax.export.export(jitted)(*args)
-            data = exported.serialize()
-        except (NotImplementedError, ValueError):
-            # A host callback not seen above, or a custom call without JAX's
-            # guarantee of compatibility.
-            return traced.lower().compile()
-        try:
-            _write(path, data)
-        except OSError as e:
-            warnings.warn(
-                f"diffrax-vi cannot keep the solves it traces in {path.parent} "
-                f"({e.strerror}): a repeated study traces them again. Make the "
-                "folder writable, set XDG_CACHE_HOME to one that is, or pass "
-                "--no-cache.",
-                RuntimeWarning,
-                stacklevel=2,
-            )
-    return jax.jit(exported.call).lower(*args).compile()
+    program = _read(path)
+    if program is not None:
+        return program
+    traced = jitted.trace(*args)
+    if _holds_callback(traced.jaxpr.jaxpr):
+        return traced.lower().compile()
+    # Compiled by XLA, not loaded from JAX's persistent cache: an executable loaded
+    # from it, serialised again, is kept without some of its kernels.
+    with persistent_cache(False):
+        program = traced.lower().compile()
+    try:
+        data = pickle.dumps(serialize_executable.serialize(program))
+    except (ValueError, NotImplementedError, TypeError, pickle.PicklingError):
+        # A backend that cannot serialise its executables, or a program holding
+        # what JAX does not serialise (constants passed as arguments).
+        return program
+    try:
+        _write(path, data)
+    except OSError as e:
+        warnings.warn(
+            f"diffrax-vi cannot keep the solves it compiles in {path.parent} "
+            f"({e.strerror}): a repeated study compiles them again. Make the "
+            "folder writable, set XDG_CACHE_HOME to one that is, or pass "
+            "--no-cache.",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    return program
 
 
 def _holds_callback(jaxpr) -> bool:
-    """Whether `jaxpr` (or one nested in it) calls back into Python: JAX exports
-    no such program, and trying would lower it once more for nothing."""
+    """Whether `jaxpr` (or one nested in it) calls back into Python: its executable
+    calls into this process, and cannot be loaded in another."""
     for eqn in jaxpr.eqns:
         if "callback" in eqn.primitive.name:
             return True
@@ -267,10 +295,10 @@ def _holds_callback(jaxpr) -> bool:
 
 @contextlib.contextmanager
 def keep_programs(directory: str | os.PathLike, context: str) -> Iterator[None]:
-    """Within it, the studies' solves are exported to and read back from
-    `directory` (see the module's docstring), keyed by the code, `context` and each
-    program's name and arguments. `context` must determine everything the studies
-    build (the command line's options)."""
+    """Within it, the studies' compiled solves are kept in and loaded from
+    `directory` (see the module's docstring), keyed by the code, the machine,
+    `context` and each program's name and arguments. `context` must determine
+    everything the studies build (the command line's options)."""
     global _kept
     before, _kept = _kept, _Programs(pathlib.Path(directory), context)
     try:
