@@ -272,24 +272,54 @@ def test_the_process_keeps_only_the_latest_programs():
     assert memo.get("b") is programs["b"] and memo.get("d") is programs["d"]
 
 
-def test_a_program_in_jaxs_persistent_cache_is_kept_whole(tmp_path, monkeypatch):
+def test_a_kept_program_is_compiled_apart_from_jaxs_persistent_cache(
+    tmp_path, monkeypatch
+):
     """An executable that JAX loads from its persistent cache, serialised again,
-    lacks some of its kernels (XLA's "Function ... not found" when run): a program
-    is kept as XLA compiles it, so it runs when loaded even where JAX's cache
-    already held it."""
+    lacks some of its kernels (XLA's "Function ... not found" when run). A kept
+    program is compiled by XLA even where JAX's cache holds the same program, and
+    is not written to that cache: loaded, it runs."""
+    import logging
+
     from diffrax_vi.cli import compilation_cache
     from diffrax_vi.scenes import kepler
     from diffrax_vi.study import as_method
 
+    hits = []  # The programs JAX loads from its persistent cache, by name.
+
+    class Hits(logging.Handler):
+        def emit(self, record):
+            if record.getMessage().startswith("Persistent compilation cache hit"):
+                hits.append(record.args[0])
+
+    logger, handler = logging.getLogger("jax._src.compiler"), Hits(logging.DEBUG)
+
+    def solves_in(folder):
+        names = (f.name for f in folder.iterdir())
+        return sorted(n for n in names if n.startswith(("jit__tracked", "jit__plain")))
+
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    jax_cache = tmp_path / "cache" / "diffrax-vi" / "jax"
     scene, method = kepler(), as_method("MidpointVI")
     settings = dict(t1=scene.period, n_steps=100, n_save=2, dtype=jnp.float64)
-    with compilation_cache():
-        direct = _run.prepare(scene, method, y0=scene.y0, **settings)  # JAX's cache.
-        for _ in range(2):  # Kept, then loaded.
-            _programs._memo.clear()
-            with _programs.keep_programs(tmp_path / "programs", "h"):
-                kept = _run.prepare(scene, method, y0=scene.y0, **settings)
+    level = logger.level
+    logger.setLevel(logging.DEBUG)
+    logger.addHandler(handler)
+    try:
+        with compilation_cache():
+            direct = _run.prepare(scene, method, y0=scene.y0, **settings)
+            before = solves_in(jax_cache)  # The direct ones.
+            for _ in range(2):  # Kept, then loaded.
+                jax.clear_caches()  # As a new process: JAX's cache on disk.
+                _programs._memo.clear()
+                with _programs.keep_programs(tmp_path / "programs", "h"):
+                    kept = _run.prepare(scene, method, y0=scene.y0, **settings)
+            assert solves_in(jax_cache) == before and len(before) == 2
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+    # The kept solves, compiled, then loaded: never from JAX's cache.
+    assert not [h for h in hits if "_tracked" in h or "_plain" in h]
     assert len(list((tmp_path / "programs").iterdir())) == 2
     for a, b in [(direct.plain, kept.plain), (direct.tracked, kept.tracked)]:
         outputs = [jax.tree.leaves(f(scene.y0)) for f in (a, b)]

@@ -28,7 +28,7 @@ from diffrax_vi._private_api import (
     NoForwardingSolverMeta,
     nondiff_solver_controller_state,
     only_transpose_ys,
-    persistent_cache,
+    persistent_cache_min_time,
     promote_result,
     save_y,
     unvmap_any,
@@ -403,17 +403,21 @@ def test_private_api_assumptions():
             item = getattr(results, name)
             assert promote_result(cls, item) == cls.promote(item)
             assert promote_result(cls, item) == getattr(cls, name)
-    # JAX's switch of its persistent cache: a `with` block sets it in its thread.
+    # JAX's shortest compilation its persistent cache keeps, read when it writes an
+    # entry: a `with` block sets it in its thread alone.
     import threading
 
-    before, inside, other = persistent_cache.value, [], []
-    with persistent_cache(not before):
-        inside.append(persistent_cache.value)
-        thread = threading.Thread(target=lambda: other.append(persistent_cache.value))
+    before, inside, other = persistent_cache_min_time.value, [], []
+    with persistent_cache_min_time(before + 7.0):
+        inside.append(persistent_cache_min_time.value)
+        thread = threading.Thread(
+            target=lambda: other.append(persistent_cache_min_time.value)
+        )
         thread.start()
         thread.join()
-    assert inside == [not before] and other == [before]
-    assert persistent_cache.value == before
+    assert inside == [before + 7.0] and other == [before]
+    assert persistent_cache_min_time.value == before
+    assert jax.config.jax_persistent_cache_min_compile_time_secs == before
     # An implicit solver's root finder leaves its tolerances to the controller.
     assert dfx.Kvaerno5().root_finder.rtol is use_stepsize_tol
     # BacksolveAdjoint's backward solve hands the solver an AdjointTerm.

@@ -37,8 +37,11 @@ from jax._src.compilation_cache import (  # The persistent cache, set up once.
     reset_cache as reset_compilation_cache,
 )
 
-# The persistent cache on or off in this thread (`with persistent_cache(False):`).
-from jax._src.config import enable_compilation_cache as persistent_cache
+# The shortest compilation the persistent cache keeps, in this thread alone
+# (`with persistent_cache_min_time(math.inf):`).
+from jax._src.config import (
+    persistent_cache_min_compile_time_secs as persistent_cache_min_time,
+)
 from jax._src.core import Literal  # A constant operand of a traced equation.
 from jax._src.interpreters.partial_eval import (  # A value being traced into a jaxpr.
     DynamicJaxprTracer,
@@ -58,7 +61,7 @@ __all__ = [
     "promote_result",
     "reset_compilation_cache",
     "only_transpose_ys",
-    "persistent_cache",
+    "persistent_cache_min_time",
     "save_y",
     "NoForwardingSolverMeta",
     "unvmap_any",

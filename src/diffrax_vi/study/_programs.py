@@ -29,6 +29,7 @@ import functools
 import hashlib
 import importlib.metadata
 import importlib.util
+import math
 import os
 import pathlib
 import pickle
@@ -44,7 +45,7 @@ import numpy as np
 from jax.experimental import serialize_executable
 from jaxtyping import PyTree
 
-from .._private_api import persistent_cache
+from .._private_api import persistent_cache_min_time
 
 
 # Whose source files the traced programs depend on.
@@ -122,6 +123,10 @@ class _Programs:
         )
         return self.directory / f"{hashlib.sha256(key.encode()).hexdigest()}.xla"
 
+
+# XLA's options for a kept program: one at its default value (no IR in the
+# executable), which only JAX's cache key sees.
+_KEPT_OPTIONS = {"xla_embed_ir_in_executable": False}
 
 # Set by `keep_programs` (as JAX's own configuration is, for the process): the
 # studies trace their solves on worker threads.
@@ -255,10 +260,13 @@ def _compile(
     traced = jitted.trace(*args)
     if _holds_callback(traced.jaxpr.jaxpr):
         return traced.lower().compile()
-    # Compiled by XLA, not loaded from JAX's persistent cache: an executable loaded
-    # from it, serialised again, is kept without some of its kernels.
-    with persistent_cache(False):
-        program = traced.lower().compile()
+    # Compiled by XLA, never loaded from JAX's persistent cache: an executable
+    # loaded from it, serialised again, is kept without some of its kernels (XLA's
+    # "Function ... not found" when it runs). A kept program is not written to that
+    # cache, and an option at its default value gives its compilation a key of its
+    # own there, apart from the same program compiled elsewhere.
+    with persistent_cache_min_time(math.inf):
+        program = traced.lower().compile(_KEPT_OPTIONS)
     try:
         data = pickle.dumps(serialize_executable.serialize(program))
     except (ValueError, NotImplementedError, TypeError, pickle.PicklingError):
