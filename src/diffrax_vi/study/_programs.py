@@ -163,11 +163,11 @@ class _Memo:
     """The programs `compiled` made last in this process (at most `size`), keyed by
     everything a trace depends on: the program's name and function, the value of
     every array and scalar it is closed over (a digest of its bytes, dtype, shape
-    and weak type), the identity of every other leaf (a function, as `jax.jit`
-    keys its own cache), the tree's structure (with its static fields), its
-    arguments' structure, shapes and dtypes, JAX's configuration and the kept
-    programs' folder. Closures whose leaves cannot be keyed (an unhashable leaf)
-    are compiled every time."""
+    and weak type), every other leaf by its own equality and hash (a function's
+    are its identity, as `jax.jit` keys its own cache), the tree's structure (with
+    its static fields), its arguments' structure, shapes and dtypes, JAX's
+    configuration and the kept programs' folder. Closures whose leaves cannot be
+    keyed (an unhashable leaf) are compiled every time."""
 
     def __init__(self, size: int):
         self.size = size
