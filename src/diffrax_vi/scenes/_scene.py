@@ -62,10 +62,14 @@ class Scene(eqx.Module):
         constraint."""
         return LagrangianTerm(self.lagrangian, self.force, self.constraint)
 
-    def energy(self, t, y, args) -> Array:
-        r"""The energy $E = p\cdot v - L$ at `(t, y)` ([`diffrax_vi.energy`][]),
-        traced into the caller's program: a study tracks it in every step."""
-        return energy_value(self.lagrangian, t, y, args)
+    @property
+    def energy(self) -> Callable:
+        r"""The energy $E = p\cdot v - L$ as `fn(t, y, args) -> array`
+        ([`diffrax_vi.energy`][]), traced into the caller's program: a study tracks
+        it in every step. It carries the Lagrangian alone, not the scene (whose
+        exact solution is a new function for each scene built), so two equal scenes
+        give a study equal programs to compile, which it then shares."""
+        return jtu.Partial(energy_value, self.lagrangian)
 
     def conserved(self) -> dict[str, Callable]:
         """Every conserved quantity, energy first, as `fn(t, y, args) -> array`. With
@@ -73,11 +77,7 @@ class Scene(eqx.Module):
         listed (the drift study checks the energy balance instead)."""
         if self.force is not None:
             return dict(self.invariants)
-        # The Lagrangian's energy, not the bound `self.energy`, which would carry
-        # the whole scene (its exact solution, a new function for each scene built)
-        # into the structure of what a study compiles, and into its key.
-        energy = jtu.Partial(energy_value, self.lagrangian)
-        return {"energy": energy, **self.invariants}
+        return {"energy": self.energy, **self.invariants}
 
     def perturbed(
         self, key: PRNGKeyArray, n: int, spread: float = 1e-3
