@@ -126,37 +126,6 @@ def test_outside_keep_programs_nothing_is_kept(tmp_path):
     assert len(calls) == 2
 
 
-def test_a_kept_solve_is_the_program_its_trace_compiles_to(tmp_path):
-    """The study times the kept program: loaded in a later run, it is the program
-    XLA makes of the solve traced in the process, instruction for instruction, and
-    computes the same numbers."""
-    import collections
-    import re
-
-    from diffrax_vi.scenes import kepler
-    from diffrax_vi.study import as_method
-
-    scene, method = kepler(), as_method("MidpointVI")
-    settings = dict(t1=scene.period, n_steps=100, n_save=2, dtype=jnp.float64)
-    direct = _run.prepare(scene, method, y0=scene.y0, **settings)
-    for _ in range(2):  # Kept, then loaded.
-        _programs._memo.clear()
-        with _programs.keep_programs(tmp_path, "e"):
-            kept = _run.prepare(scene, method, y0=scene.y0, **settings)
-    assert len(list(tmp_path.iterdir())) == 2
-
-    def instructions(compiled):
-        text = compiled.as_text()
-        return collections.Counter(re.findall(r" = \S+ ([\w-]+)\(", text))
-
-    for a, b in [(direct.plain, kept.plain), (direct.tracked, kept.tracked)]:
-        assert a is not b
-        assert instructions(a) == instructions(b) and sum(instructions(a).values())
-        outputs = [jax.tree.leaves(f(scene.y0)) for f in (a, b)]
-        assert all(np.all(np.isfinite(x)) for x in outputs[0])
-        assert all(np.array_equal(x, y) for x, y in zip(*outputs))
-
-
 def test_a_repeated_study_reads_its_programs_back(tmp_path, monkeypatch):
     """Each command keeps what it compiles in $XDG_CACHE_HOME/diffrax-vi/jax and the
     solves it traces in .../programs, and leaves the process's JAX settings as they
@@ -272,14 +241,18 @@ def test_the_process_keeps_only_the_latest_programs():
     assert memo.get("b") is programs["b"] and memo.get("d") is programs["d"]
 
 
-def test_a_kept_program_is_compiled_apart_from_jaxs_persistent_cache(
+def test_a_kept_solve_is_its_traces_program_compiled_apart_from_jaxs_cache(
     tmp_path, monkeypatch
 ):
-    """An executable that JAX loads from its persistent cache, serialised again,
-    lacks some of its kernels (XLA's "Function ... not found" when run). A kept
-    program is compiled by XLA even where JAX's cache holds the same program, and
-    is not written to that cache: loaded, it runs."""
+    """The study times the kept program: loaded in a later run, it is the program
+    XLA makes of the solve traced in the process, instruction for instruction, and
+    computes the same numbers. An executable that JAX loads from its persistent
+    cache, serialised again, lacks some of its kernels (XLA's "Function ... not
+    found" when run): a kept program is compiled by XLA even where JAX's cache holds
+    the same program, and is not written to that cache."""
+    import collections
     import logging
+    import re
 
     from diffrax_vi.cli import compilation_cache
     from diffrax_vi.scenes import kepler
@@ -297,6 +270,10 @@ def test_a_kept_program_is_compiled_apart_from_jaxs_persistent_cache(
     def solves_in(folder):
         names = (f.name for f in folder.iterdir())
         return sorted(n for n in names if n.startswith(("jit__tracked", "jit__plain")))
+
+    def instructions(compiled):
+        text = compiled.as_text()
+        return collections.Counter(re.findall(r" = \S+ ([\w-]+)\(", text))
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     jax_cache = tmp_path / "cache" / "diffrax-vi" / "jax"
@@ -322,5 +299,8 @@ def test_a_kept_program_is_compiled_apart_from_jaxs_persistent_cache(
     assert not [h for h in hits if "_tracked" in h or "_plain" in h]
     assert len(list((tmp_path / "programs").iterdir())) == 2
     for a, b in [(direct.plain, kept.plain), (direct.tracked, kept.tracked)]:
+        assert a is not b
+        assert instructions(a) == instructions(b) and sum(instructions(a).values())
         outputs = [jax.tree.leaves(f(scene.y0)) for f in (a, b)]
+        assert all(np.all(np.isfinite(x)) for x in outputs[0])
         assert all(np.array_equal(x, y) for x, y in zip(*outputs))
