@@ -10,7 +10,8 @@ Every time is the wall time of a fresh process, as a user starts it:
 - the main job with `--no-cache`, then on an empty cache (cold), then again on that
   cache (warm): the cache keeps each solve as XLA compiled it (its executable),
   and the warm run loads it instead of tracing, lowering and compiling (not for
-  programs that hold a host callback, which no cache keeps);
+  programs that hold a host callback, which no cache keeps), and the size of the
+  programs the cold run kept;
 - a second warm run, which also records the span in which the study readies its
   solves (`prepare` and `track`: loading or compiling, the untimed tracked runs,
   from the first start to the last end, on both cores), and the rest of the run
@@ -113,6 +114,12 @@ def main() -> None:
                 seconds([*job, "no-cache", "--no-cache"], cache, work)
             )
             times["cold"].append(seconds([*job, "cold"], cache, work))
+            kept = list(
+                (pathlib.Path(cache["XDG_CACHE_HOME"]) / "diffrax-vi").glob(
+                    "programs/*"
+                )
+            )
+            folder = (len(kept), sum(path.stat().st_size for path in kept))
             times["warm"].append(seconds([*job, "warm"], cache, work))
             times["warm_again"].append(
                 seconds(
@@ -122,6 +129,8 @@ def main() -> None:
                     prepared,
                 )
             )
+    from diffrax_vi.study._programs import MAX_BYTES
+
     import_diffrax, help_, refused, full, uncached, cold, warm = (
         min(times[k])
         for k in ("import", "help", "refused", "full", "uncached", "cold", "warm")
@@ -155,6 +164,11 @@ def main() -> None:
     print(
         "  each round, cold and warm: "
         + ", ".join(f"{c:.2f} {w:.2f}" for c, w in zip(times["cold"], times["warm"]))
+    )
+    print(
+        f"  kept programs after it: {folder[0]} files, {folder[1] / 2**20:.1f} MiB; "
+        f"the folder's bound ({MAX_BYTES / 2**20:.0f} MiB) holds "
+        f"{MAX_BYTES // folder[1]} such runs"
     )
     print(f"a second warm run                   {warm_again:7.2f}")
     print(f"  readying the solves               {span:7.2f}")

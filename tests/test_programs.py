@@ -118,6 +118,48 @@ def test_a_folder_it_cannot_write_is_a_warning_not_a_failure(tmp_path):
     assert np.allclose(out["sum"], jnp.sum(jnp.sin(x)))
 
 
+def test_the_folder_keeps_the_programs_used_last_within_its_bound(tmp_path):
+    """After a program is kept, the folder is cut to its bound, the files least
+    recently written or read going first: a program read back counts as used, an
+    earlier version's file (`.jaxexport`) as a kept program, and a file that a run
+    stopped before it finished writing goes after an hour."""
+    import os
+    import time
+
+    now = time.time()
+
+    def age(path, hours: float):
+        os.utime(path, (now - 3600 * hours, now - 3600 * hours))
+        return path
+
+    def aged(name: str, size: int, hours: float):
+        (tmp_path / name).write_bytes(b"x" * size)
+        return age(tmp_path / name, hours)
+
+    oldest = aged("a.jaxexport", 1000, 30)
+    old = aged("b.xla", 1000, 20)
+    recent = aged("c.xla", 1000, 2)
+    abandoned = aged("d.part", 10, 2)
+    writing = aged("e.part", 10, 0.1)
+    x = jnp.arange(3.0)
+    with _programs.keep_programs(tmp_path, "c"):
+        _programs.compiled("f", _counted([]), None, x)
+    assert not abandoned.exists() and oldest.exists()  # Within 512 MiB.
+    (kept,) = set(tmp_path.glob("*.xla")) - {old, recent}
+    size = kept.stat().st_size
+    age(kept, 40)  # The oldest, were it not read below.
+    calls = []
+    # Room for two programs and 1500 bytes: of the three 1000-byte files, the two
+    # oldest go.
+    with _programs.keep_programs(tmp_path, "c", max_bytes=2 * size + 1500):
+        _programs.compiled("f", _counted(calls), None, x)  # Read back: used now.
+        assert not calls and oldest.exists()  # A read sweeps nothing.
+        _programs.compiled("g", _counted(calls), None, x)  # Another program.
+    (new,) = set(tmp_path.glob("*.xla")) - {old, recent, kept}
+    assert len(calls) == 1 and abs(new.stat().st_size - size) < 400
+    assert set(tmp_path.iterdir()) == {recent, kept, new, writing}
+
+
 def test_outside_keep_programs_nothing_is_kept(tmp_path):
     calls = []
     x = jnp.ones(2)

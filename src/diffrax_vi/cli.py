@@ -305,8 +305,10 @@ def programs_dir() -> pathlib.Path:
     [`diffrax_vi.cli.cache_dir`][]. Each is keyed by the command's options, the
     shapes of its arguments, the source files of diffrax_vi and of the libraries it
     traces through, and what XLA compiles for (`XLA_FLAGS`, the processor);
-    `--no-cache` neither reads nor writes them. Like JAX's own cache, the folder
-    holds machine code that the command runs: keep it your own."""
+    `--no-cache` neither reads nor writes them. The folder holds at most 512 MiB:
+    each time a command keeps a solve, the programs it and earlier commands read or
+    wrote least recently go first. Like JAX's own cache, the folder holds machine
+    code that the command runs: keep it your own."""
     return cache_dir().parent / "programs"
 
 

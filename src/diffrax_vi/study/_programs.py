@@ -17,6 +17,11 @@ compiles for (`XLA_FLAGS`, the backend's version, the processor and its features
 program that holds a host callback cannot be kept (its executable calls back into
 this process); it is traced every time, as without this cache.
 
+The folder is bounded: after each program it keeps, the files least recently written
+or read go until the folder holds at most `max_bytes` (`keep_programs`, by default
+512 MiB), so that programs whose key no run asks for again (after an upgrade, an
+edited source file, other options) do not pile up.
+
 Within one process, `compiled` also keeps the programs it compiles last, keyed by the
 values of what they are closed over (`_Memo`): a study run again (a notebook's cell
 rerun on the same scene, with new but equal objects) reuses them, as `jax.jit` reuses
@@ -37,6 +42,7 @@ import platform
 import sys
 import tempfile
 import threading
+import time
 import warnings
 from collections.abc import Callable, Iterator
 
@@ -97,12 +103,22 @@ def _machine() -> str:
     return "\n".join(parts)
 
 
+# The size of the folder of kept programs, by default.
+MAX_BYTES = 512 * 2**20
+
+# A file being written (`_write`) that is older than this was left by a run that
+# stopped before it finished.
+_ABANDONED_SECONDS = 3600.0
+
+
 @dataclasses.dataclass(frozen=True)
 class _Programs:
-    """The folder of kept programs and the context of their keys."""
+    """The folder of kept programs, the context of their keys and the folder's
+    largest size."""
 
     directory: pathlib.Path
     context: str
+    max_bytes: int = MAX_BYTES
 
     def path(self, name: str, args: tuple) -> pathlib.Path:
         shapes = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), args)
@@ -123,6 +139,41 @@ class _Programs:
         )
         return self.directory / f"{hashlib.sha256(key.encode()).hexdigest()}.xla"
 
+    def sweep(self) -> None:
+        """Delete the kept programs least recently written or read (`_read` marks
+        a file it loads) until the folder holds at most `max_bytes`, and the files
+        that runs stopped before they finished writing. Every other file written
+        here counts as a kept program (this version's `.xla` files, an earlier
+        one's `.jaxexport`). Another run may delete the same files at once: a file
+        gone already is skipped, and a program deleted as it is read is compiled
+        again."""
+        kept, now = [], time.time()
+        try:
+            entries = list(os.scandir(self.directory))
+        except OSError:
+            return
+        for entry in entries:
+            try:
+                if not entry.is_file(follow_symlinks=False):
+                    continue
+                stat = entry.stat(follow_symlinks=False)
+                if entry.name.endswith(".part"):
+                    if now - stat.st_mtime > _ABANDONED_SECONDS:
+                        os.unlink(entry.path)
+                    continue
+            except OSError:
+                continue
+            kept.append((stat.st_mtime, stat.st_size, entry.path))
+        size = sum(bytes_ for _, bytes_, _ in kept)
+        for _, bytes_, path in sorted(kept):
+            if size <= self.max_bytes:
+                break
+            try:
+                os.unlink(path)
+            except OSError:
+                continue
+            size -= bytes_
+
 
 # XLA's options for a kept program: one at its default value (no IR in the
 # executable), which only JAX's cache key sees.
@@ -137,12 +188,17 @@ def _read(path: pathlib.Path) -> Callable | None:
     """The compiled program kept in `path`, loaded; `None` if there is none."""
     try:
         data, in_tree, out_tree = pickle.loads(path.read_bytes())
-        return serialize_executable.deserialize_and_load(data, in_tree, out_tree)
+        program = serialize_executable.deserialize_and_load(data, in_tree, out_tree)
     except Exception:
         # None kept yet; or a file cut short, or written by another version of JAX,
         # for which pickle, JAX and XLA raise several kinds of error: compiled
         # again and replaced.
         return None
+    try:
+        os.utime(path)  # Used now: the last that `_Programs.sweep` deletes.
+    except OSError:
+        pass  # A folder the user may read but not write.
+    return program
 
 
 def _write(path: pathlib.Path, data: bytes) -> None:
@@ -275,6 +331,7 @@ def _compile(
         return program
     try:
         _write(path, data)
+        _kept.sweep()
     except OSError as e:
         warnings.warn(
             f"diffrax-vi cannot keep the solves it compiles in {path.parent} "
@@ -302,13 +359,18 @@ def _holds_callback(jaxpr) -> bool:
 
 
 @contextlib.contextmanager
-def keep_programs(directory: str | os.PathLike, context: str) -> Iterator[None]:
+def keep_programs(
+    directory: str | os.PathLike, context: str, max_bytes: int = MAX_BYTES
+) -> Iterator[None]:
     """Within it, the studies' compiled solves are kept in and loaded from
     `directory` (see the module's docstring), keyed by the code, the machine,
     `context` and each program's name and arguments. `context` must determine
-    everything the studies build (the command line's options)."""
+    everything the studies build (the command line's options). After each program
+    it keeps, the folder is cut to `max_bytes`, the least recently used first
+    (`_Programs.sweep`)."""
     global _kept
-    before, _kept = _kept, _Programs(pathlib.Path(directory), context)
+    programs = _Programs(pathlib.Path(directory), context, max_bytes)
+    before, _kept = _kept, programs
     try:
         yield
     finally:
