@@ -88,9 +88,10 @@ def getkey():
     return lambda: next(keys)
 
 
-# The default suite has 20 minutes on CI's two cores. These runs repeat, for one more
-# method or Lagrangian, a property the default suite already checks for another; they
-# run with `-m slow` (test ids, or their prefix before `[` ... `-`).
+# The default suite's budget is 15 minutes on CI's two cores (what it takes:
+# benchmarks/results/suite_compiles_cpu.txt). These runs repeat, for one more method
+# or Lagrangian, a property the default suite already checks for another; they run
+# with `-m slow` (test ids, or their prefix before `[` ... `-`).
 SLOW = (
     # tests/test_adaptive.py checks the order with Stormer-Verlet, adaptation of
     # implicit solvers with MidpointVI.
