@@ -1,8 +1,11 @@
 """The programs a study compiles, kept within a process and, for the command line,
 between runs (`study._programs`): a program read back computes what tracing it again
-would, a changed key traces again, and what cannot be kept is traced every time."""
+would, a changed key traces again, what cannot be kept is traced every time, and the
+folder keeps within its bound the programs used last."""
 
 import json
+import os
+import time
 
 import jax
 import jax.numpy as jnp
@@ -123,9 +126,6 @@ def test_the_folder_keeps_the_programs_used_last_within_its_bound(tmp_path):
     recently written or read going first: a program read back counts as used, an
     earlier version's file (`.jaxexport`) as a kept program, and a file that a run
     stopped before it finished writing goes after an hour."""
-    import os
-    import time
-
     now = time.time()
 
     def age(path, hours: float):

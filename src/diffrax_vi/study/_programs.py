@@ -369,8 +369,7 @@ def keep_programs(
     it keeps, the folder is cut to `max_bytes`, the least recently used first
     (`_Programs.sweep`)."""
     global _kept
-    programs = _Programs(pathlib.Path(directory), context, max_bytes)
-    before, _kept = _kept, programs
+    before, _kept = _kept, _Programs(pathlib.Path(directory), context, max_bytes)
     try:
         yield
     finally:
