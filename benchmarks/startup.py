@@ -114,11 +114,8 @@ def main() -> None:
                 seconds([*job, "no-cache", "--no-cache"], cache, work)
             )
             times["cold"].append(seconds([*job, "cold"], cache, work))
-            kept = list(
-                (pathlib.Path(cache["XDG_CACHE_HOME"]) / "diffrax-vi").glob(
-                    "programs/*"
-                )
-            )
+            programs = pathlib.Path(cache["XDG_CACHE_HOME"]) / "diffrax-vi" / "programs"
+            kept = list(programs.iterdir())
             folder = (len(kept), sum(path.stat().st_size for path in kept))
             times["warm"].append(seconds([*job, "warm"], cache, work))
             times["warm_again"].append(
