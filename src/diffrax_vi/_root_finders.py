@@ -518,9 +518,14 @@ def _with_multipliers(fn, y, args, f, inverse_mass) -> tuple[PyTree, PyTree]:
     eye = jnp.eye(m, dtype=lam.dtype)
     b_cols, d_cols = jax.vmap(along_multipliers)(eye)  # row j: column j
     weighted_b = jax.vmap(weigh)(b_cols)
-    c_weighted_b = jax.vmap(constraint_along)(weighted_b)
-    schur = (d_cols - c_weighted_b).T
-    rhs = r_g - constraint_along(weigh(r_w))
+    # C P^-1 B and C P^-1 r_w in one batch of m + 1 directions: one trace of the
+    # constraint's derivative, not two.
+    directions = jtu.tree_map(
+        lambda cols, x: jnp.concatenate([cols, x[None]]), weighted_b, weigh(r_w)
+    )
+    c_directions = jax.vmap(constraint_along)(directions)
+    schur = (d_cols - c_directions[:m]).T
+    rhs = r_g - c_directions[m]
     if newton_is_dense(m):
         # The Schur complement of a constrained step, G(q1) M^-1 G(q0)^T up to
         # its sign and h: definite where the constraints are independent and the
