@@ -226,15 +226,7 @@ def project_momentum(
     space = term.lagrangian.space
     jacobian = constraint_jacobian(g, t, q, args, space)
     rate = constraint_rate(g, t, q, args)
-    push = transpose_product(g, t, q, args, space)
     m = jacobian.shape[0]
-    mu0 = jnp.zeros((m,), state_dtype(p))
-
-    def impulse(mu):
-        return jtu.tree_map(jnp.negative, push(mu))
-
-    def moved(mu):
-        return jtu.tree_map(lambda a, b: a + b, p, impulse(mu))
 
     # Inside a step the solve's start has checked the quadratic marker.
     def velocity(p):
@@ -246,6 +238,17 @@ def project_momentum(
         )
     if newton_is_dense(m) and velocity_is_explicit(term.lagrangian, p):
         return project_affine(jacobian, rate, p, velocity)
+    # Newton's method on the multipliers: G^T mu by a reverse pass of the
+    # constraint, traced only here.
+    push = transpose_product(g, t, q, args, space)
+    mu0 = jnp.zeros((m,), state_dtype(p))
+
+    def impulse(mu):
+        return jtu.tree_map(jnp.negative, push(mu))
+
+    def moved(mu):
+        return jtu.tree_map(lambda a, b: a + b, p, impulse(mu))
+
     if velocity_is_explicit(term.lagrangian, p):
 
         def residual(mu):
