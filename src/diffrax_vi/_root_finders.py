@@ -518,10 +518,11 @@ def _with_multipliers(fn, y, args, f, inverse_mass) -> tuple[PyTree, PyTree]:
     eye = jnp.eye(m, dtype=lam.dtype)
     b_cols, d_cols = jax.vmap(along_multipliers)(eye)  # row j: column j
     weighted_b = jax.vmap(weigh)(b_cols)
+    weighted_r = weigh(r_w)
     # C P^-1 B and C P^-1 r_w in one batch of m + 1 directions: one trace of the
     # constraint's derivative, not two.
     directions = jtu.tree_map(
-        lambda cols, x: jnp.concatenate([cols, x[None]]), weighted_b, weigh(r_w)
+        lambda cols, x: jnp.concatenate([cols, x[None]]), weighted_b, weighted_r
     )
     c_directions = jax.vmap(constraint_along)(directions)
     schur = (d_cols - c_directions[:m]).T
@@ -540,7 +541,7 @@ def _with_multipliers(fn, y, args, f, inverse_mass) -> tuple[PyTree, PyTree]:
         lambda x: jnp.sum(jnp.reshape(dlam, (m,) + (1,) * (x.ndim - 1)) * x, axis=0),
         weighted_b,
     )
-    dw = jtu.tree_map(lambda a, b: a - b, weigh(r_w), from_multipliers)
+    dw = jtu.tree_map(lambda a, b: a - b, weighted_r, from_multipliers)
     return (dw, dlam), from_multipliers
 
 
