@@ -369,6 +369,10 @@ def keep_programs(
     it keeps, the folder is cut to `max_bytes`, the least recently used first
     (`_Programs.sweep`)."""
     global _kept
+    # The key's code and machine, read once here, on the caller's thread: on the
+    # studies' worker threads, beside the figures' import of matplotlib, each of
+    # the thousand `stat` calls of `_code` waited for Python's lock.
+    _code(), _machine()
     before, _kept = _kept, _Programs(pathlib.Path(directory), context, max_bytes)
     try:
         yield
