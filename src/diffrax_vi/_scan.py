@@ -22,7 +22,7 @@ from jaxtyping import Array, PyTree
 
 from ._custom_types import Args, RealScalarLike
 from ._misc import all_finite, has_loop
-from ._private_api import assert_term_compatible, use_stepsize_tol
+from ._private_api import assert_term_compatible, use_stepsize_tol, WrapTerm
 
 
 class FixedStepSolution(eqx.Module):
@@ -237,6 +237,17 @@ def _scan_steps(terms, solver, times, first_step, y0, args, n, n_save, unroll):
     # Known when traced, for the solver's checks, as NumPy numbers: no program to
     # compile for them.
     start, first = (np.asarray(x, dtype) for x in first_step)
+    # The terms wrapped as diffeqsolve wraps them for its solver (forwards), so that
+    # `init` and `step` get what they get there: a variational step traced for one
+    # is reused by the other in the same process (`_traced_once`), as a study's
+    # tracked and timed solves of the same method are.
+    direction = jnp.where(t0 < t1, 1, -1)
+    terms = jax.tree.map(
+        lambda term: WrapTerm(term, direction),
+        terms,
+        is_leaf=lambda x: isinstance(x, dfx.AbstractTerm)
+        and not isinstance(x, dfx.MultiTerm),
+    )
     state = solver.init(terms, start, first, y0, args)
     if unroll is None:
         step = jax.make_jaxpr(
