@@ -245,8 +245,9 @@ def _scan_steps(terms, solver, times, first_step, y0, args, n, n_save, unroll):
     terms = jax.tree.map(
         lambda term: WrapTerm(term, direction),
         terms,
-        is_leaf=lambda x: isinstance(x, dfx.AbstractTerm)
-        and not isinstance(x, dfx.MultiTerm),
+        is_leaf=lambda x: (
+            isinstance(x, dfx.AbstractTerm) and not isinstance(x, dfx.MultiTerm)
+        ),
     )
     state = solver.init(terms, start, first, y0, args)
     if unroll is None:
