@@ -408,7 +408,74 @@ def is_symmetric(solver) -> bool:
     return isinstance(solver, AbstractComposableSolver) and bool(solver.symmetric)
 
 
-class AbstractVariationalSolver(dfx.AbstractSolver):
+class AbstractTracedOnce(dfx.AbstractSolver):
+    """A solver whose step is `fractional_step` with `Substep(1.0, t0, t1)`, and
+    whose `fractional_step` is traced once per program (`_traced_once`): a subclass
+    writes the step itself as `_fractional_step`."""
+
+    def step(
+        self,
+        terms: PyTree[dfx.AbstractTerm],
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: PyTree,
+        args: Args,
+        solver_state: PyTree,
+        made_jump: bool | Bool[ArrayLike, ""],
+    ) -> tuple[PyTree, None, dict[str, PyTree], PyTree, dfx.RESULTS]:
+        return self.fractional_step(
+            terms, t0, t1, y0, args, solver_state, made_jump, Substep(1.0, t0, t1)
+        )
+
+    def fractional_step(
+        self,
+        terms: PyTree[dfx.AbstractTerm],
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: PyTree,
+        args: Args,
+        solver_state: PyTree,
+        made_jump: bool | Bool[ArrayLike, ""],
+        substep: Substep,
+        dense: bool = True,
+    ) -> tuple[PyTree, None, dict[str, PyTree] | None, PyTree, dfx.RESULTS]:
+        return _traced_once(
+            terms,
+            t0,
+            t1,
+            y0,
+            args,
+            solver_state,
+            made_jump,
+            substep,
+            solver=self,
+            dense=dense,
+            settings=self.trace_settings(),
+        )
+
+    def trace_settings(self) -> object:
+        """What the step's trace depends on beyond its arguments (a setting of the
+        process), as part of the key under which it is traced once: none by
+        default."""
+        return None
+
+    @abc.abstractmethod
+    def _fractional_step(
+        self,
+        terms: PyTree[dfx.AbstractTerm],
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: PyTree,
+        args: Args,
+        solver_state: PyTree,
+        made_jump: bool | Bool[ArrayLike, ""],
+        substep: Substep,
+        dense: bool = True,
+    ) -> tuple[PyTree, None, dict[str, PyTree] | None, PyTree, dfx.RESULTS]:
+        """`fractional_step` (`AbstractComposableSolver.fractional_step`)."""
+
+
+class AbstractVariationalSolver(AbstractTracedOnce):
     """Base class for variational integrators: solvers that read the Lagrangian of a
     [`diffrax_vi.LagrangianTerm`][] and step its discrete Euler–Lagrange equations on
     `y = (q, p)`. The one-step ones are also
@@ -505,45 +572,6 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
             compensation = (compensation[0], compensation_p)
         return step, VIState(method_state(step), compensation, work)
 
-    def step(
-        self,
-        terms: dfx.AbstractTerm,
-        t0: RealScalarLike,
-        t1: RealScalarLike,
-        y0: PyTree,
-        args: Args,
-        solver_state: VIState,
-        made_jump: bool | Bool[ArrayLike, ""],
-    ) -> tuple[PyTree, None, dict[str, PyTree], VIState, dfx.RESULTS]:
-        return self.fractional_step(
-            terms, t0, t1, y0, args, solver_state, made_jump, Substep(1.0, t0, t1)
-        )
-
-    def fractional_step(
-        self,
-        terms: dfx.AbstractTerm,
-        t0: RealScalarLike,
-        t1: RealScalarLike,
-        y0: PyTree,
-        args: Args,
-        solver_state: VIState,
-        made_jump: bool | Bool[ArrayLike, ""],
-        substep: Substep,
-        dense: bool = True,
-    ) -> tuple[PyTree, None, dict[str, PyTree] | None, VIState, dfx.RESULTS]:
-        return _traced_once(
-            terms,
-            t0,
-            t1,
-            y0,
-            args,
-            solver_state,
-            made_jump,
-            substep,
-            solver=self,
-            dense=dense,
-        )
-
     def _fractional_step(
         self,
         terms: dfx.AbstractTerm,
@@ -595,13 +623,17 @@ class AbstractVariationalSolver(dfx.AbstractSolver):
 
 
 # A step traced once per program: diffrax traces a solver's step up to three times
-# (twice under `eval_shape` to find what stays static, then in its loop). JAX reuses
-# the trace of a nested jit for the same abstract inputs, and XLA inlines it, so the
-# compiled loop is the same (tracing MidpointVI on four_bar: 6.9 -> 2.2 s).
+# (twice under `eval_shape` to find what stays static, then in its loop), and a
+# composition's scan over its substeps twice (`Composition._fractional_step`). JAX
+# reuses the trace of a nested jit for the same abstract inputs, and XLA inlines it,
+# so the compiled loop is the same (tracing MidpointVI on four_bar: 6.9 -> 2.2 s).
+# The reuse spans programs too: a study's tracked solve (`solve_fixed_steps`) and its
+# timed one (`diffeqsolve`) of the same method trace its step once.
 @eqx.filter_jit
 def _traced_once(
-    terms, t0, t1, y0, args, solver_state, made_jump, substep, solver, dense
+    terms, t0, t1, y0, args, state, made_jump, substep, solver, dense, settings
 ):
+    del settings
     return solver._fractional_step(
-        terms, t0, t1, y0, args, solver_state, made_jump, substep, dense
+        terms, t0, t1, y0, args, state, made_jump, substep, dense
     )

@@ -28,6 +28,7 @@ from .._xla import small_loops_compiled_whole
 from .base import (
     AbstractComposableSolver,
     AbstractSymplecticSolver,
+    AbstractTracedOnce,
     is_symmetric,
     step_control,
     Substep,
@@ -207,7 +208,9 @@ def _as_scheme(
     return CompositionScheme(np.asarray(scheme, dtype=np.float64))
 
 
-class Composition(AbstractSymplecticSolver, AbstractComposableSolver):
+class Composition(
+    AbstractTracedOnce, AbstractSymplecticSolver, AbstractComposableSolver
+):
     r"""Symmetric composition of a symmetric variational integrator: each step of
     size $h$ is the base method's steps of sizes $\gamma_1 h, \dots, \gamma_m h$
     (some negative).
@@ -335,6 +338,10 @@ class Composition(AbstractSymplecticSolver, AbstractComposableSolver):
             terms, t0, self._first_end(t0, t1), y0, args, solver_state
         )
 
+    def trace_settings(self) -> object:
+        # Whether the substeps are unrolled (`_fractional_step`).
+        return jax.default_backend(), small_loops_compiled_whole()
+
     def _first_end(self, t0: RealScalarLike, t1: RealScalarLike) -> RealScalarLike:
         """The end of the first substep of a step from `t0` to `t1`. Python floats
         are weakly typed: they keep float32 times float32. Times known at trace time
@@ -342,21 +349,7 @@ class Composition(AbstractSymplecticSolver, AbstractComposableSolver):
         first = float(self.scheme.coefficients[0])
         return at_trace_time(lambda a, b: a + first * (b - a), t0, t1)
 
-    def step(
-        self,
-        terms: PyTree[dfx.AbstractTerm],
-        t0: RealScalarLike,
-        t1: RealScalarLike,
-        y0: PyTree,
-        args: Args,
-        solver_state: PyTree,
-        made_jump: bool | Bool[ArrayLike, ""],
-    ):
-        return self.fractional_step(
-            terms, t0, t1, y0, args, solver_state, made_jump, Substep(1.0, t0, t1)
-        )
-
-    def fractional_step(
+    def _fractional_step(
         self,
         terms: PyTree[dfx.AbstractTerm],
         t0: RealScalarLike,
