@@ -159,28 +159,37 @@ def test_fixed_step_programs_hold_no_host_callback(solver):
         solver.init(terms, jnp.asarray(0.0), jnp.asarray(jnp.nan), SCENE.y0, None)
 
 
-def test_diffeqsolve_reuses_the_step_the_scan_traced(monkeypatch):
+@pytest.mark.parametrize(
+    "solver, owner",
+    [
+        (dvi.MidpointVI(), dvi.AbstractVariationalSolver),
+        (dvi.Composition(dvi.StormerVerlet(), "yoshida4"), dvi.Composition),
+    ],
+    ids=["MidpointVI", "Yoshida4"],
+)
+def test_diffeqsolve_reuses_the_step_the_scan_traced(solver, owner, monkeypatch):
     """solve_fixed_steps hands the solver the terms that diffeqsolve hands it (in
-    diffrax's WrapTerm), so a variational step traced for one is reused by the
-    other in the same process: a study traces each method's step once for its
-    tracked solve (the scan) and its timed one (diffeqsolve)."""
+    diffrax's WrapTerm), so a step traced once per program (a variational solver's,
+    a composition's) for one is reused by the other in the same process: a study
+    traces each method's step once for its tracked solve (the scan) and its timed
+    one (diffeqsolve)."""
     traced = []
-    step = dvi.AbstractVariationalSolver._fractional_step
+    step = owner._fractional_step
 
     def counted(self, *args, **kwargs):
         traced.append(type(self).__name__)
         return step(self, *args, **kwargs)
 
-    monkeypatch.setattr(dvi.AbstractVariationalSolver, "_fractional_step", counted)
+    monkeypatch.setattr(owner, "_fractional_step", counted)
     # A Lagrangian of its own, whose step no other test has traced.
     lagrangian = dvi.SeparableLagrangian(lambda t, q, args: -1 / jnp.linalg.norm(q))
-    solver = dvi.MidpointVI()
     terms = dvi.terms_for(solver, lagrangian)
     y0 = (jnp.array([1.0, 0.0]), jnp.array([0.0, 1.0]))
+    once = [type(solver).__name__]
     jax.make_jaxpr(lambda y: dvi.solve_fixed_steps(terms, solver, 0, 1, 0.1, y).ys)(y0)
-    assert traced == ["MidpointVI"]
+    assert traced == once
     jax.make_jaxpr(lambda y: dfx.diffeqsolve(terms, solver, 0, 1, 0.1, y).ys)(y0)
-    assert traced == ["MidpointVI"]
+    assert traced == once
 
 
 def test_study_fixed_step_path_equals_diffeqsolve_path():

@@ -12,7 +12,6 @@ from .._misc import all_finite, perturbed_with, split_state, tree_add
 from .base import (
     AbstractComposableSolver,
     AbstractSymplecticSolver,
-    AbstractTracedOnce,
     after_jump,
     check_times,
     compensated_add,
@@ -60,9 +59,7 @@ class VerletState(eqx.Module):
     compensation: PyTree | None
 
 
-class StormerVerlet(
-    AbstractTracedOnce, AbstractSymplecticSolver, AbstractComposableSolver
-):
+class StormerVerlet(AbstractSymplecticSolver, AbstractComposableSolver):
     r"""Störmer–Verlet (velocity Verlet, leapfrog) method for partitioned systems.
 
     2nd order symmetric symplectic explicit method. One evaluation of each vector
@@ -128,7 +125,23 @@ class StormerVerlet(
         compensation = perturbed_with(initial_compensation(y0, self.compensated), y0)
         return check_times(t0, t1, VerletState(force, compensation))
 
-    def _fractional_step(
+    def step(
+        self,
+        terms: tuple[dfx.AbstractTerm, dfx.AbstractTerm],
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: tuple[PyTree, PyTree],
+        args: Args,
+        solver_state: VerletState,
+        made_jump: bool | Bool[ArrayLike, ""],
+    ) -> tuple[
+        tuple[PyTree, PyTree], None, dict[str, PyTree], VerletState, dfx.RESULTS
+    ]:
+        return self.fractional_step(
+            terms, t0, t1, y0, args, solver_state, made_jump, Substep(1.0, t0, t1)
+        )
+
+    def fractional_step(
         self,
         terms: tuple[dfx.AbstractTerm, dfx.AbstractTerm],
         t0: RealScalarLike,
