@@ -339,8 +339,8 @@ class Composition(
         )
 
     def trace_settings(self) -> object:
-        # Whether the substeps are unrolled (`_fractional_step`).
-        return jax.default_backend(), small_loops_compiled_whole()
+        # Whether explicit substeps are unrolled (`_fractional_step`).
+        return _loops_compiled_whole()
 
     def _first_end(self, t0: RealScalarLike, t1: RealScalarLike) -> RealScalarLike:
         """The end of the first substep of a step from `t0` to `t1`. Python floats
@@ -410,10 +410,8 @@ class Composition(
         # against 0.55 s and stepped 2.4 times slower. Not measured on GPUs, where
         # the loop stays.
         first = jax.tree.map(lambda x: x[0], xs)
-        unroll = (
-            jax.default_backend() == "cpu"
-            and small_loops_compiled_whole()
-            and not has_loop(jax.make_jaxpr(substep_k)(init, first).jaxpr)
+        unroll = _loops_compiled_whole() and not has_loop(
+            jax.make_jaxpr(substep_k)(init, first).jaxpr
         )
         (y, state, result), _ = lax.scan(substep_k, init, xs, unroll=unroll)
         if not dense:
@@ -430,6 +428,13 @@ class Composition(
 
     def func(self, terms, t0, y0, args):
         return self.base.func(terms, t0, y0, args)
+
+
+def _loops_compiled_whole() -> bool:
+    """Whether XLA compiles the time-stepping loop as one function here (on CPU, at
+    the small-loop threshold `import diffrax_vi` sets), where a composition unrolls
+    its explicit substeps: what its trace reads beyond its arguments."""
+    return jax.default_backend() == "cpu" and small_loops_compiled_whole()
 
 
 def _scaled(terms, substep: Substep, f):
