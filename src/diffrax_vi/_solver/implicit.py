@@ -8,6 +8,7 @@ constraints.
 """
 
 import abc
+from collections.abc import Callable
 
 import lineax as lx
 import optimistix as optx
@@ -129,13 +130,11 @@ class AbstractImplicitVI(
                 self.inverse_mass(step),
             )
         residual = lambda w: self.stage_residual(step, w)
-        fold_residual = None
-        if self.one_stage:
-            fold_residual = (
-                residual
-                if step.term.force is None
-                else (lambda w: self.stage_residual(without_force(step), w))
-            )
+        if self.one_stage and step.term.force is None:
+            # The root finder's own Jacobian measures the curvature.
+            fold_residual = residual
+        else:
+            fold_residual = self.fold_residual(without_force(step))
         equations = StepEquations(
             residual=residual,
             increments=lambda w: self.stage_increments(step, w),
@@ -163,6 +162,17 @@ class AbstractImplicitVI(
         a symmetric method."""
         return unknowns
 
+    def fold_residual(
+        self, step: StepInputs
+    ) -> Callable[[PyTree], tuple[PyTree, PyTree]] | None:
+        """The residual whose curvature along the way from the guess to a root tells
+        whether the root continues the motion (`StepEquations.fold_residual`), for
+        `step` without applied forces: the stage equations themselves where the
+        unknowns are one velocity, `None` (no test) otherwise."""
+        if self.one_stage:
+            return lambda w: self.stage_residual(step, w)
+        return None
+
     @property
     def one_stage(self) -> bool:
         """Whether the unknowns are one velocity, so that the Jacobian of the step's
@@ -170,7 +180,8 @@ class AbstractImplicitVI(
         and its curvature along the Newton path tests the root. The stage equations
         of a multi-stage method have no such structure: their Jacobian can be
         indefinite at the one good root of a linear problem (Gauss and Lobatto
-        methods on the oscillator past their stability interval)."""
+        methods on the oscillator past their stability interval), so their test is
+        their own (`fold_residual`)."""
         return False
 
 

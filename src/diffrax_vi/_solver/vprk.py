@@ -361,6 +361,31 @@ class AbstractVPRK(AbstractImplicitVI):
     def one_stage(self) -> bool:
         return self.tableau.stages == 1
 
+    def fold_residual(self, step: StepInputs):
+        r"""Several stages: the midpoint step's residual at the stages' mean velocity
+        $\bar V = \sum_i b_i V_i = (q_1 - q_0)/h$, given to stage $i$ with weight
+        $b_i$, so that its curvature along the way from the guess is
+        $\delta\bar V\cdot J_{\rm mid}(\bar V)\,\delta\bar V$, with $J_{\rm mid} =
+        \partial^2 L/\partial v^2 - (h^2/4)\,\partial^2 L/\partial q^2$ up to an
+        antisymmetric part. The stage equations' own Jacobian is no such test: the
+        curvature it gives (weighted by $b$) fails the oscillator's one root from
+        $h\omega = 3.5$ (`GaussVPRK(3)`, `LobattoVPRK(3)`) or 4 (`GaussVPRK(2)`);
+        this one is positive wherever the potential curves upwards, at every step
+        size, and turns negative only where the step outruns an instability
+        ($h\lambda > 2$ for a growth rate $\lambda$), the same test as
+        `MidpointVI`'s: a step that jumps across a blow-up (its roots there have
+        flipped signs and energies of $10^{15}$) is a failure, not a state."""
+        if self.one_stage:
+            return super().fold_residual(step)
+        b = self.tableau.b
+
+        def residual(stage_v):
+            r, s = rule_residual(_MIDPOINT, step, _combine(b, stage_v))
+            spread = lambda x: jnp.asarray(b, x.dtype).reshape(-1, *(1,) * x.ndim)
+            return jtu.tree_map(lambda x: spread(x) * x[None], r), s
+
+        return residual
+
     def reversed_stages(self, unknowns: PyTree) -> PyTree:
         # A symmetric tableau's stage i of the step with -h is stage s + 1 - i of
         # the step with h (c_i -> 1 - c_i); one stage has no stage axis on a group.
