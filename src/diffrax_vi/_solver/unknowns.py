@@ -460,20 +460,8 @@ def solve_step(
         ):
             curvature = solved.curvature
         else:
-            # One derivative of the fold residual at the root, unless the root
-            # finder's convergence certified the root (+inf: the fixed-point
-            # iteration contracted to it, as on most steps of a separable
-            # Lagrangian): GaussVPRK(2)'s Kepler step 1.37-1.39 us, against
-            # 1.45-1.51 us with the derivative on every step and 1.27-1.35 us
-            # with no test.
-            def along_the_way():
-                d = jtu.tree_map(lambda a, b: a - b, unknowns, guess)
-                return _curvature(equations.fold_residual, unknowns, d)
-
-            certified_by_solve = ~unvmap_any(solved.curvature != jnp.inf)
-            curvature = lax.cond(
-                certified_by_solve, lambda: solved.curvature, along_the_way
-            )
+            d = jtu.tree_map(lambda a, b: a - b, unknowns, guess)
+            curvature = _curvature(equations.fold_residual, unknowns, d)
         spurious = state.positive & (curvature < 0)
         result = dfx.RESULTS.where(
             (result == dfx.RESULTS.successful) & spurious,
