@@ -62,6 +62,24 @@ class Substep(NamedTuple):
     t1: RealScalarLike
 
 
+class AbstractStepsByFraction(dfx.AbstractSolver):
+    """A solver whose step is its `fractional_step` with `Substep(1.0, t0, t1)`."""
+
+    def step(
+        self,
+        terms: PyTree[dfx.AbstractTerm],
+        t0: RealScalarLike,
+        t1: RealScalarLike,
+        y0: PyTree,
+        args: Args,
+        solver_state: PyTree,
+        made_jump: bool | Bool[ArrayLike, ""],
+    ) -> tuple[PyTree, None, dict[str, PyTree], PyTree, dfx.RESULTS]:
+        return self.fractional_step(
+            terms, t0, t1, y0, args, solver_state, made_jump, Substep(1.0, t0, t1)
+        )
+
+
 class AbstractSymplecticSolver(dfx.AbstractSolver, **_markers):
     """Marker for solvers whose step map is symplectic on `y = (q, p)`.
 
@@ -72,7 +90,7 @@ class AbstractSymplecticSolver(dfx.AbstractSolver, **_markers):
     """
 
 
-class AbstractComposableSolver(dfx.AbstractSolver, **_markers):
+class AbstractComposableSolver(AbstractStepsByFraction, **_markers):
     """Base class for solvers that [`diffrax_vi.Composition`][] can take as its
     base: they take steps as fractions of a composition's step (`fractional_step`),
     and say whether their step is symmetric (time-reversible: a step of `h` followed
@@ -408,24 +426,10 @@ def is_symmetric(solver) -> bool:
     return isinstance(solver, AbstractComposableSolver) and bool(solver.symmetric)
 
 
-class AbstractTracedOnce(dfx.AbstractSolver):
+class AbstractTracedOnce(AbstractStepsByFraction):
     """A solver whose step is `fractional_step` with `Substep(1.0, t0, t1)`, and
     whose `fractional_step` is traced once per program (`_traced_once`): a subclass
     writes the step itself as `_fractional_step`."""
-
-    def step(
-        self,
-        terms: PyTree[dfx.AbstractTerm],
-        t0: RealScalarLike,
-        t1: RealScalarLike,
-        y0: PyTree,
-        args: Args,
-        solver_state: PyTree,
-        made_jump: bool | Bool[ArrayLike, ""],
-    ) -> tuple[PyTree, None, dict[str, PyTree], PyTree, dfx.RESULTS]:
-        return self.fractional_step(
-            terms, t0, t1, y0, args, solver_state, made_jump, Substep(1.0, t0, t1)
-        )
 
     def fractional_step(
         self,

@@ -125,22 +125,6 @@ class StormerVerlet(AbstractSymplecticSolver, AbstractComposableSolver):
         compensation = perturbed_with(initial_compensation(y0, self.compensated), y0)
         return check_times(t0, t1, VerletState(force, compensation))
 
-    def step(
-        self,
-        terms: tuple[dfx.AbstractTerm, dfx.AbstractTerm],
-        t0: RealScalarLike,
-        t1: RealScalarLike,
-        y0: tuple[PyTree, PyTree],
-        args: Args,
-        solver_state: VerletState,
-        made_jump: bool | Bool[ArrayLike, ""],
-    ) -> tuple[
-        tuple[PyTree, PyTree], None, dict[str, PyTree], VerletState, dfx.RESULTS
-    ]:
-        return self.fractional_step(
-            terms, t0, t1, y0, args, solver_state, made_jump, Substep(1.0, t0, t1)
-        )
-
     def fractional_step(
         self,
         terms: tuple[dfx.AbstractTerm, dfx.AbstractTerm],
