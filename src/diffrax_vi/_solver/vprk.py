@@ -245,6 +245,13 @@ def _combine(coefficients: np.ndarray, stacked: PyTree) -> PyTree:
     `GaussVPRK(2)`'s step on the double pendulum 9.9-10.0 us with it, 2.5-2.6 us
     without."""
     c = np.asarray(coefficients)
+    if c.shape[-1] == 1:
+        # One stage: nothing to sum, and the product is no fusion. The elementwise
+        # form below cost MidpointVI's Kepler step 3.5% (0.257-0.259 us against
+        # 0.248-0.251 us, in turns).
+        return jtu.tree_map(
+            lambda x: jnp.tensordot(jnp.asarray(c, x.dtype), x, axes=1), stacked
+        )
 
     def combine(x):
         weights = jnp.asarray(c, x.dtype).reshape(c.shape + (1,) * (x.ndim - 1))
