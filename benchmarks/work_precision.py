@@ -13,7 +13,8 @@ The script runs at the small-loop threshold `import diffrax_vi` sets (as the
 `diffrax-vi` command does); `--xla-default` keeps XLA's default.
 
 Run: `python benchmarks/work_precision.py [--quick] [--scenes kepler] [--horizons 100]`
-(minutes to tens of minutes).
+(minutes to tens of minutes); `--replot` redraws the figures from the csv in `--out`
+without running anything.
 """
 
 import argparse
@@ -57,10 +58,17 @@ def main():
     parser.add_argument("--quick", action="store_true", help="a small grid")
     parser.add_argument("--horizons", default="100,10000")
     parser.add_argument("--scenes", default="kepler,henon_heiles")
+    parser.add_argument(
+        "--replot", action="store_true", help="redraw the figures from the csv"
+    )
     add_xla_option(parser)
     args = parser.parse_args()
-    print(apply_xla_option(args), flush=True)
     out = pathlib.Path(args.out)
+    if args.replot:
+        with open(out / "work_precision.csv", newline="") as f:
+            plot(list(csv.DictReader(f)), out)
+        return
+    print(apply_xla_option(args), flush=True)
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for scene in (scenes.SCENES[name]() for name in args.scenes.split(",")):
@@ -86,14 +94,24 @@ def main():
                     print(scene.name, periods, *r.values(), flush=True)
                 records += study.records
             rows += [dict(problem=scene.name, periods=periods, **r) for r in records]
-            combined = WorkPrecision(scene.name, periods, "float64", records)
-            plot_work_precision(
-                combined, out / f"work_precision_{scene.name}_{periods}.png"
-            )
     with open(out / "work_precision.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
+    plot(rows, out)
+
+
+def plot(rows: list[dict], out: pathlib.Path) -> None:
+    """One figure per problem and horizon (a csv's rows are read back as strings)."""
+    number = ("wall_time_s", "max_energy_error", "global_error")
+    groups = {}
+    for row in rows:
+        record = {k: v for k, v in row.items() if k not in ("problem", "periods")}
+        record.update({k: float(row[k]) for k in number})
+        groups.setdefault((row["problem"], int(row["periods"])), []).append(record)
+    for (name, periods), records in groups.items():
+        study = WorkPrecision(name, periods, "float64", records)
+        plot_work_precision(study, out / f"work_precision_{name}_{periods}.png")
 
 
 if __name__ == "__main__":

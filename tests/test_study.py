@@ -280,6 +280,46 @@ def test_figure_labels_are_matplotlibs_in_unicode(limits):
     assert labelled == ({False, True} if limits[1] / limits[0] < 10 else {False})
 
 
+def test_work_precision_figure_names_every_solver_once_in_one_colour(
+    tmp_path, monkeypatch
+):
+    """The work-precision figure has one legend entry per solver, each drawn in one
+    style and no two solvers alike (thirteen solvers, more than matplotlib's ten
+    colours), also where a panel has nothing to draw (a chaotic scene's global
+    error past its reference's horizon)."""
+    from diffrax_vi.study import WorkPrecision
+    from diffrax_vi.study._plot import _styles, plot_work_precision
+    from matplotlib.figure import Figure
+
+    ours = ["StormerVerlet", "MidpointVI", "Yoshida4", "KahanLi6", "KahanLi8"]
+    ours += ["GaussVPRK2", "GaussVPRK3"]
+    rk = ["Tsit5", "Dopri5", "Dopri8", "Tsit5+PID", "Dopri5+PID", "Dopri8+PID"]
+    styles = _styles(ours + rk)
+    assert len({tuple(sorted(style.items())) for style in styles.values()}) == 13
+    records = [
+        dict(solver=s, wall_time_s=t, max_energy_error=t, global_error=np.nan)
+        for s in ours + rk
+        for t in (0.1, 0.2)
+    ]
+    drawn, savefig = [], Figure.savefig
+    monkeypatch.setattr(
+        Figure,
+        "savefig",
+        lambda fig, *a, **k: drawn.append(fig) or savefig(fig, *a, **k),
+    )
+    path = plot_work_precision(
+        WorkPrecision("henon_heiles", 10_000, "float64", records), tmp_path / "wp.png"
+    )
+    assert matplotlib.image.imread(path).shape[0] > 100
+    energy, error = drawn[0].axes
+    assert not error.lines
+    assert [t.get_text() for t in error.get_legend().get_texts()] == ours + rk
+    for line, solver in zip(energy.lines, ours + rk, strict=True):
+        assert line.get_label() == solver
+        assert line.get_color() == styles[solver]["color"]
+        assert line.get_linestyle() == styles[solver]["ls"]
+
+
 @pytest.mark.parametrize(
     "argv,message",
     [
