@@ -351,6 +351,36 @@ def test_multi_stage_steps_pass_the_fold_test_on_the_oscillator_at_any_step(stag
         assert abs(float(0.5 * (q**2 + p**2)) - 0.5) < 1e-13, h
 
 
+def test_multi_stage_fold_test_is_unit_free():
+    """LobattoVPRK(3) stepping across the blow-up of V = -q^4 (t = 0.927) from rest
+    at q = 1 at h = 0.1 stops at the step whose root lies across the fold, the
+    ninth (tests/test_failures.py), in any units of time and length: with
+    q -> l q, t -> s t (V = -g q^4, g = 1 / (s l)^2) it keeps the same states, q
+    times l and p times l / s, and fails the same step. (Scales and times are
+    arrays: one compiled solve for every unit.)"""
+    blowup = dvi.SeparableLagrangian(lambda t, q, g: -g * q**4)
+    kept = []
+    for s, length in ((1.0, 1.0), (1e3, 1.0), (1.0, 1e-3), (1e-2, 1e2)):
+        sol = _solve(
+            blowup,
+            dvi.LobattoVPRK(3),
+            (jnp.asarray(length), jnp.asarray(0.0)),
+            t1=jnp.asarray(3.0 * s),
+            dt=jnp.asarray(0.1 * s),
+            args=jnp.asarray(1 / (s * length) ** 2),
+            throw=False,
+            saveat=dfx.SaveAt(steps=True),
+        )
+        assert sol.result == dfx.RESULTS.nonlinear_divergence, (s, length)
+        assert int(sol.stats["num_accepted_steps"]) == 9, (s, length)
+        q, p = (np.asarray(x[:8]) for x in sol.ys)
+        kept.append((q / length, p * s / length))
+        assert np.isnan(sol.ys[0][8])
+    for q, p in kept[1:]:
+        np.testing.assert_allclose(q, kept[0][0], rtol=1e-10)
+        np.testing.assert_allclose(p, kept[0][1], rtol=1e-10)
+
+
 @pytest.mark.parametrize("bad", ["t1", "dt0"])
 @pytest.mark.parametrize("name,solver", ALL + [("StormerVerlet", dvi.StormerVerlet())])
 def test_nan_times_are_an_error(name, solver, bad):
