@@ -12,6 +12,8 @@
 - on the double pendulum (a general Lagrangian, whose implicit steps take Newton
   iterations with a dense Jacobian), MidpointVI, TrapezoidalVI and GaussVPRK(2)
   against Tsit5 on the same term;
+- on the learned potential (an MLP), MidpointVI, GaussVPRK(2) and LobattoVPRK(3),
+  and the custom fusions that break each one's loops into kernels;
 - on the Cartesian pendulum, TrapezoidalVI (RATTLE) and MidpointVI with the
   constraint over the same Lagrangian without it (target <= 3x);
 - on Kepler, Tsit5 and Dopri8 on a `LagrangianTerm` over the same solver on a
@@ -319,23 +321,45 @@ def general_lagrangian(repeats):
     with `SimplifiedNewton` (one factorisation kept across iterations and steps)."""
     scene = dvi.scenes.double_pendulum()
     term, n, h = scene.term(), 20_000, scene.period / 100
-
-    us = lambda solver: (
-        1e6 * best_time(final_state(term, solver, h, n), scene.y0, repeats=repeats) / n
-    )
-    t_tsit = us(dfx.Tsit5())
-    print(
-        f"\nDouble pendulum (general Lagrangian, dense Newton): {n} steps, us per step"
-    )
-    for name, solver in (
+    solvers = [
         ("MidpointVI", dvi.MidpointVI()),
         ("  chord method", dvi.MidpointVI(root_finder=dvi.SimplifiedNewton())),
         ("TrapezoidalVI", dvi.TrapezoidalVI()),
         ("GaussVPRK(2)", dvi.GaussVPRK(2)),
-    ):
-        t = us(solver)
+        ("Tsit5", dfx.Tsit5()),
+    ]
+    # In turns: this machine's slow spells fall on every solver alike.
+    fns = [final_state(term, solver, h, n) for _, solver in solvers]
+    *times, t_tsit = (1e6 * t / n for t in best_times(fns, scene.y0, repeats=repeats))
+    print(
+        f"\nDouble pendulum (general Lagrangian, dense Newton): {n} steps, us per step"
+    )
+    for (name, _), t in zip(solvers, times):
         print(f"  {name:14s} {t:9.3f} us = {t / t_tsit:5.2f}x Tsit5 on the same term")
     print(f"  {'Tsit5':14s} {t_tsit:9.3f} us")
+
+
+def learned_lagrangian(repeats):
+    """The `learned` scene (a potential given by a small MLP, whose layers are
+    matrix-vector products of the user's) under the implicit solvers and Tsit5, and
+    how many custom fusions break each solve's loops into kernels
+    (`diagnostics.loop_breakers`): a matrix product XLA on CPU makes a YNNPACK
+    fusion."""
+    scene = dvi.scenes.learned()
+    term, n, h = scene.term(), 5_000, scene.period / 100
+    print(f"\nLearned potential (an MLP, 1 DOF): {n} steps, us per step")
+    solvers = [
+        ("MidpointVI", dvi.MidpointVI()),
+        ("GaussVPRK(2)", dvi.GaussVPRK(2)),
+        ("LobattoVPRK(3)", dvi.LobattoVPRK(3)),
+        ("Tsit5", dfx.Tsit5()),
+    ]
+    fns = [final_state(term, solver, h, n) for _, solver in solvers]
+    times = best_times(fns, scene.y0, repeats=repeats)
+    for (name, _), fn, t in zip(solvers, fns, times):
+        text = fn.lower(scene.y0).compile().as_text()
+        breakers = len(dvi.diagnostics.loop_breakers(text))
+        print(f"  {name:14s} {1e6 * t / n:9.3f} us, {breakers} fusions in its loops")
 
 
 def bare_rattle(scene, h, n):
@@ -442,6 +466,7 @@ def main():
         # MidpointVI's dense Newton matrix is too costly to time at 4096 DOF.
         run(f"Chain ({n} DOF)", Chain(), chain_y0, 0.02, steps, args.repeats, implicit)
     general_lagrangian(args.repeats)
+    learned_lagrangian(args.repeats)
     constrained(args.repeats)
 
 
