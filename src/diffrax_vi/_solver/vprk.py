@@ -243,8 +243,8 @@ def _each_stage(fn, *stacked: PyTree) -> PyTree:
     Under the vmap a matrix-vector product of the user's (a learned Lagrangian's
     layers) becomes a matrix product, which XLA on CPU makes a custom (YNNPACK)
     fusion that breaks the step's loops into kernels: `GaussVPRK(2)` on the
-    `learned` scene 15.7-18.5 us a step with the vmap, 5.6-6.1 us without (and the
-    double pendulum 2.50-2.55 against 2.16-2.22 us; in turns). A lax.map over the
+    `learned` scene 15.9-17.9 us a step with the vmap, 5.7-7.1 us without (and the
+    double pendulum 2.49-2.59 against 2.17-2.33 us; in turns). A lax.map over the
     stages (one trace, a loop) was faster still on the double pendulum (1.35 us)
     but 20-50% slower on small scenes (Kepler, the forced Duffing)."""
     stages = jax.tree.leaves(stacked)[0].shape[0]
