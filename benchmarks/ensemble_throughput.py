@@ -18,6 +18,7 @@ Run: `python benchmarks/ensemble_throughput.py [--sizes 1,64,1024,4096]`.
 """
 
 import argparse
+import importlib.metadata
 import time
 
 import diffrax as dfx
@@ -126,7 +127,10 @@ def main():
     sizes = [int(s) for s in args.sizes.split(",")]
     scene = kepler()
     periods = args.steps / 200
-    print(f"devices: {jax.devices()}")
+    print(
+        f"jax {jax.__version__}, diffrax {importlib.metadata.version('diffrax')}, "
+        f"devices: {jax.devices()}"
+    )
     print(f"Kepler e=0.6, {args.steps} steps (200 per orbit), float64")
     print(f"{'solver':>14} {'members':>8} {'traj*steps/s':>14} {'vs 1 member':>12}")
     plain = {}
