@@ -194,7 +194,12 @@ def main():
                     args.steps,
                     args.repeats,
                 )
-            print(f"  N = {size:5d} {name:>26}", flush=True)
+            wire_us = f"{1e6 * wire[name][size]:.1f}" if name in wire else "-"
+            print(
+                f"  N = {size:5d} {name:>26}: chain {1e6 * chain[name][size]:.1f} us,"
+                f" bead_wire {wire_us} us",
+                flush=True,
+            )
     chain = {k: [v[n] for n in sizes] for k, v in chain.items()}
     wire = {k: [v[n] for n in sizes] for k, v in wire.items()}
     table("chain, h = 0.05", sizes, chain)
