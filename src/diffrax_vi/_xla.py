@@ -33,6 +33,11 @@ SMALL_LOOP_BYTES = 1 << 22
 # XLA's own threshold, bytes.
 XLA_DEFAULT_BYTES = 1024
 
+# XLA on CPU hands a floating-point reduction of this many elements or more to
+# YNNPACK as a custom fusion, which breaks the loop around it into kernels
+# (`diagnostics.loop_breakers`; `benchmarks/ynn_reductions.py`).
+YNN_REDUCTION_MIN = 4096
+
 # Set (to anything but "" or "0") before `import diffrax_vi` to keep XLA's default.
 OPT_OUT = "DIFFRAX_VI_XLA_DEFAULT"
 

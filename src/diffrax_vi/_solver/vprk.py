@@ -43,6 +43,7 @@ from .._lagrangian import (
 )
 from .._space import is_euclidean
 from .._tolerance import COEFFICIENT_ATOL, ORDER_CONDITION_ATOL, PRODUCT_TOL
+from .._xla import YNN_REDUCTION_MIN
 from .base import StepInputs
 from .implicit import AbstractImplicitVI, IMPLICIT_ARGS_DOC, SYMMETRIC_POSITIVE
 from .rule import rule_increments, rule_residual, rule_step, rule_work
@@ -253,25 +254,27 @@ def _each_stage(fn, *stacked: PyTree) -> PyTree:
 
 
 def _combine(coefficients: np.ndarray, stacked: PyTree) -> PyTree:
-    """`sum_j coefficients[..., j] * stacked[j]`, leafwise, as elementwise products
-    and a sum (as `_linear.product`): a `tensordot` is a `dot_general`, which the
-    Jacobian's `vmap` in Newton's loop batches, and which XLA on CPU makes a custom
-    fusion that breaks the loop into kernels (`diagnostics.loop_breakers`):
-    `GaussVPRK(2)`'s step on the double pendulum 9.9-10.0 us with it, 2.5-2.6 us
-    without."""
+    """`sum_j coefficients[..., j] * stacked[j]`, leafwise.
+
+    For a small state, as elementwise products and a sum (as `_linear.product`):
+    a `tensordot` is a `dot_general`, which the Jacobian's `vmap` in Newton's loop
+    batches, and which XLA on CPU makes a custom fusion that breaks the loop into
+    kernels (`diagnostics.loop_breakers`): `GaussVPRK(2)`'s step on the double
+    pendulum 9.9-10.0 us with it, 2.5-2.6 us without. For one stage (nothing to
+    sum) and for a large state, a `tensordot`: the sum of `YNN_REDUCTION_MIN`
+    products or more is a YNNPACK fusion too, and a slower kernel than the
+    product's (`GaussVPRK(2)` on `scaling.py`'s chain of 4096 masses 1003-1011
+    against 682-685 us a step; on its bead wire of 4096 beads 6153-6161 against
+    6549-6564 us). For one stage the elementwise form cost `MidpointVI`'s Kepler
+    step 3.5% (0.257-0.259 us against 0.248-0.251 us, in turns)."""
     c = np.asarray(coefficients)
-    if c.shape[-1] == 1:
-        # One stage: nothing to sum, and the product is no fusion. The elementwise
-        # form below cost MidpointVI's Kepler step 3.5% (0.257-0.259 us against
-        # 0.248-0.251 us, in turns).
-        return jtu.tree_map(
-            lambda x: jnp.tensordot(jnp.asarray(c, x.dtype), x, axes=1), stacked
-        )
 
     def combine(x):
-        weights = jnp.asarray(c, x.dtype).reshape(c.shape + (1,) * (x.ndim - 1))
-        stages = x.reshape((1,) * (c.ndim - 1) + x.shape)
-        return jnp.sum(weights * stages, axis=c.ndim - 1)
+        if c.shape[-1] > 1 and c.size * (x.size // len(x)) < YNN_REDUCTION_MIN:
+            weights = jnp.asarray(c, x.dtype).reshape(c.shape + (1,) * (x.ndim - 1))
+            stages = x.reshape((1,) * (c.ndim - 1) + x.shape)
+            return jnp.sum(weights * stages, axis=c.ndim - 1)
+        return jnp.tensordot(jnp.asarray(c, x.dtype), x, axes=1)
 
     return jtu.tree_map(combine, stacked)
 
