@@ -264,8 +264,8 @@ def _combine(coefficients: np.ndarray, stacked: PyTree) -> PyTree:
     sum) and for a large state, a `tensordot`: the sum of `YNN_REDUCTION_MIN`
     products or more is a YNNPACK fusion too, and a slower kernel than the
     product's (`GaussVPRK(2)` on `scaling.py`'s chain of 4096 masses 1003-1011
-    against 682-685 us a step; on its bead wire of 4096 beads 6153-6161 against
-    6549-6564 us). For one stage the elementwise form cost `MidpointVI`'s Kepler
+    against 682-685 us a step; on its bead wire of 4096 beads 6153-6178 against
+    6549-6592 us). For one stage the elementwise form cost `MidpointVI`'s Kepler
     step 3.5% (0.257-0.259 us against 0.248-0.251 us, in turns)."""
     c = np.asarray(coefficients)
 
