@@ -18,7 +18,6 @@ Run: `python benchmarks/ensemble_throughput.py [--sizes 1,64,1024,4096]`.
 """
 
 import argparse
-import importlib.metadata
 import time
 
 import diffrax as dfx
@@ -32,7 +31,7 @@ from diffrax_vi import separable_terms, solve_fixed_steps, StormerVerlet  # noqa
 from diffrax_vi._solver import stormer_verlet  # noqa: E402
 from diffrax_vi.scenes import kepler  # noqa: E402
 from diffrax_vi.study import drift, Method  # noqa: E402
-from step_cost import add_xla_option, apply_xla_option  # noqa: E402
+from step_cost import add_xla_option, apply_xla_option, versions  # noqa: E402
 
 
 # The bare scan has no compensated summation; this is its like-for-like solver.
@@ -127,10 +126,7 @@ def main():
     sizes = [int(s) for s in args.sizes.split(",")]
     scene = kepler()
     periods = args.steps / 200
-    print(
-        f"jax {jax.__version__}, diffrax {importlib.metadata.version('diffrax')}, "
-        f"devices: {jax.devices()}"
-    )
+    print(f"{versions()}, devices: {jax.devices()}")
     print(f"Kepler e=0.6, {args.steps} steps (200 per orbit), float64")
     print(f"{'solver':>14} {'members':>8} {'traj*steps/s':>14} {'vs 1 member':>12}")
     plain = {}

@@ -36,7 +36,6 @@ Run: `taskset -c 1 python benchmarks/lie_groups.py [--repeats 5] [--xla-default]
 """
 
 import argparse
-import importlib.metadata
 
 import diffrax as dfx
 import jax
@@ -60,6 +59,7 @@ from step_cost import (  # noqa: E402
     best_times,
     final_state,
     kahan_add,
+    versions,
 )
 
 
@@ -399,10 +399,7 @@ def main():
     add_xla_option(parser)
     args = parser.parse_args()
     setting = apply_xla_option(args)
-    print(
-        f"jax {jax.__version__}, diffrax {importlib.metadata.version('diffrax')}, "
-        f"device {jax.devices()[0]}, {setting}"
-    )
+    print(f"{versions()}, device {jax.devices()[0]}, {setting}")
     scene = dvi.scenes.heavy_top()
     term = scene.term()
     n = 20_000

@@ -44,6 +44,7 @@ from step_cost import (  # noqa: E402
     best_times,
     kahan_add,
     Kepler,
+    versions,
 )
 
 
@@ -190,10 +191,7 @@ def main():
     setting = apply_xla_option(args)
     from blackjax.mcmc import integrators, metrics
 
-    print(
-        f"jax {jax.__version__}, diffrax {importlib.metadata.version('diffrax')}, "
-        f"blackjax {importlib.metadata.version('blackjax')}, {setting}"
-    )
+    print(f"{versions()}, blackjax {importlib.metadata.version('blackjax')}, {setting}")
     h = 2 * np.pi / PER_ORBIT
     n = ORBITS * PER_ORBIT
     y0 = dvi.scenes.kepler(eccentricity=E).y0

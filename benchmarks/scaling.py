@@ -24,7 +24,6 @@ them from a previous run's printed output instead of measuring again.
 """
 
 import argparse
-import importlib.metadata
 import math
 
 import diffrax as dfx
@@ -37,7 +36,12 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 import diffrax_vi as dvi  # noqa: E402
 from diffrax_vi import scenes  # noqa: E402
-from step_cost import add_xla_option, apply_xla_option, best_time  # noqa: E402
+from step_cost import (  # noqa: E402
+    add_xla_option,
+    apply_xla_option,
+    best_time,
+    versions,
+)
 
 
 def springs(q):
@@ -167,10 +171,7 @@ def main():
     print(apply_xla_option(args))
     sizes = [int(n) for n in args.sizes.split(",")]
     names = args.solvers.split(",")
-    print(
-        f"jax {jax.__version__}, diffrax {importlib.metadata.version('diffrax')}, "
-        f"device {jax.devices()[0]}, float64, best of {args.repeats}"
-    )
+    print(f"{versions()}, device {jax.devices()[0]}, float64, best of {args.repeats}")
 
     chain = {n: {} for n in names}
     wire = {n: {} for n in names if SOLVERS[n][1] == "generic"}

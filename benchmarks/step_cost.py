@@ -67,6 +67,11 @@ class Kepler(dvi.AbstractSeparableLagrangian):
         return -1 / jnp.sqrt(jnp.sum(q**2))
 
 
+def versions() -> str:
+    """The jax and diffrax versions, for a results file's first line."""
+    return f"jax {jax.__version__}, diffrax {importlib.metadata.version('diffrax')}"
+
+
 def add_xla_option(parser):
     """`--xla-default`: keep XLA's default small-loop threshold (see the docstring)."""
     parser.add_argument(
@@ -457,10 +462,7 @@ def main():
     add_xla_option(parser)
     args = parser.parse_args()
     setting = apply_xla_option(args)
-    print(
-        f"jax {jax.__version__}, diffrax {importlib.metadata.version('diffrax')}, "
-        f"device {jax.devices()[0]}, {setting}"
-    )
+    print(f"{versions()}, device {jax.devices()[0]}, {setting}")
     kepler_y0 = dvi.scenes.kepler(eccentricity=0.6).y0
     run("Kepler (2 DOF)", Kepler(), kepler_y0, 2 * jnp.pi / 200, 100_000, args.repeats)
     small_system(Kepler(), kepler_y0, 2 * jnp.pi / 200, 100_000, args.repeats)
