@@ -12,8 +12,9 @@
 - on the double pendulum (a general Lagrangian, whose implicit steps take Newton
   iterations with a dense Jacobian), MidpointVI, TrapezoidalVI and GaussVPRK(2)
   against Tsit5 on the same term;
-- on the learned potential (an MLP), MidpointVI, GaussVPRK(2) and LobattoVPRK(3),
-  and the custom fusions that break each one's loops into kernels;
+- on Lagrangians given by MLPs (the learned potential, one degree of freedom, and
+  a neural Lagrangian of q and v, two), MidpointVI, GaussVPRK(2), LobattoVPRK(3)
+  and Tsit5, and the custom fusions that break each one's loops into kernels;
 - on the Cartesian pendulum, TrapezoidalVI (RATTLE) and MidpointVI with the
   constraint over the same Lagrangian without it (target <= 3x);
 - on Kepler, Tsit5 and Dopri8 on a `LagrangianTerm` over the same solver on a
@@ -344,30 +345,52 @@ def general_lagrangian(repeats):
     print(f"  {'Tsit5':14s} {t_tsit:9.3f} us")
 
 
+class NeuralLagrangian(dvi.AbstractLagrangian):
+    """A Lagrangian neural network's kind of Lagrangian on two degrees of freedom: an
+    MLP (`equinox.nn.Linear` layers) of the positions and velocities on top of a
+    regular kinetic term and a harmonic well."""
+
+    net: eqx.nn.MLP
+
+    def __init__(self, width: int = 32):
+        self.net = eqx.nn.MLP(4, "scalar", width, 2, jax.nn.tanh, key=jax.random.key(0))
+
+    def __call__(self, t, q, v, args):
+        well = 0.5 * jnp.sum(v**2) - 0.5 * jnp.sum(q**2)
+        return well + 0.05 * self.net(jnp.concatenate([q, v]))
+
+
 def learned_lagrangian(repeats):
-    """The `learned` scene (a potential given by a small MLP, whose layers are
-    matrix-vector products of the user's) under the implicit solvers and Tsit5, and
+    """Lagrangians given by MLPs, whose layers are matrix-vector products of the
+    user's: the `learned` scene (a potential, one degree of freedom) and a
+    `NeuralLagrangian` (of q and v, two), under the implicit solvers and Tsit5, and
     how many custom fusions break each solve's loops into kernels
     (`diagnostics.loop_breakers`): a matrix product XLA on CPU makes a YNNPACK
     fusion."""
-    scene = dvi.scenes.learned()
-    term, n, h = scene.term(), 5_000, scene.period / 100
-    print(f"\nLearned potential (an MLP, 1 DOF): {n} steps, us per step")
-    solvers = [
-        ("MidpointVI", dvi.MidpointVI()),
-        ("GaussVPRK(2)", dvi.GaussVPRK(2)),
-        ("LobattoVPRK(3)", dvi.LobattoVPRK(3)),
-        ("Tsit5", dfx.Tsit5()),
+    learned = dvi.scenes.learned()
+    neural_y0 = (jnp.array([0.1, 0.5]), jnp.array([0.0, 0.2]))
+    cases = [
+        ("Learned potential (an MLP, 1 DOF)", learned.term(), learned.y0),
+        ("Neural Lagrangian (an MLP of q and v, 2 DOF)", None, neural_y0),
     ]
-    # Compiled once: the programs timed are the programs whose HLO is read.
-    programs = [
-        final_state(term, solver, h, n).lower(scene.y0).compile()
-        for _, solver in solvers
-    ]
-    times = best_times(programs, scene.y0, repeats=repeats)
-    for (name, _), program, t in zip(solvers, programs, times):
-        breakers = len(dvi.diagnostics.loop_breakers(program.as_text()))
-        print(f"  {name:14s} {1e6 * t / n:9.3f} us, {breakers} fusions in its loops")
+    n, h = 5_000, learned.period / 100
+    for title, term, y0 in cases:
+        term = dvi.LagrangianTerm(NeuralLagrangian()) if term is None else term
+        print(f"\n{title}: {n} steps, us per step")
+        solvers = [
+            ("MidpointVI", dvi.MidpointVI()),
+            ("GaussVPRK(2)", dvi.GaussVPRK(2)),
+            ("LobattoVPRK(3)", dvi.LobattoVPRK(3)),
+            ("Tsit5", dfx.Tsit5()),
+        ]
+        # Compiled once: the programs timed are the programs whose HLO is read.
+        programs = [
+            final_state(term, solver, h, n).lower(y0).compile() for _, solver in solvers
+        ]
+        times = best_times(programs, y0, repeats=repeats)
+        for (name, _), program, t in zip(solvers, programs, times):
+            found = len(dvi.diagnostics.loop_breakers(program.as_text()))
+            print(f"  {name:14s} {1e6 * t / n:9.3f} us, {found} fusions in its loops")
 
 
 def bare_rattle(scene, h, n):

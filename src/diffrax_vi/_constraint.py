@@ -40,6 +40,7 @@ from ._lagrangian import (
     velocity_is_explicit,
 )
 from ._linear import (
+    dense_jacobian,
     pivot_ratio,
     product,
     unit_scale,
@@ -527,7 +528,7 @@ def multiplier_force(
         return _flat(momentum(lagrangian, t_, q_, v_, args))
 
     # W applied to the columns of G^T and to f - m.
-    hessian = jax.jacfwd(lambda x: dl_dv(t, q, unravel(x)))(flat_v)
+    hessian = dense_jacobian(lambda x: dl_dv(t, q, unravel(x)), flat_v)
     mixed = jax.jvp(lambda t_, q_: dl_dv(t_, q_, v), (t, q), (one, moving(q)))[1]
     rhs = jnp.concatenate([jacobian.T, (_flat(force) - mixed)[:, None]], axis=1)
     if newton_is_dense(n) and newton_is_dense(m):

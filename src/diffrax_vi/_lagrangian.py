@@ -13,7 +13,7 @@ import lineax as lx
 from jaxtyping import Array, ArrayLike, Bool, PyTree
 
 from ._custom_types import Args, P, Q, RealScalarLike, Scalar, V
-from ._linear import krylov_solve, unrolled_lu_solve
+from ._linear import dense_jacobian, krylov_solve, unrolled_lu_solve
 from ._misc import (
     all_finite,
     call_traced_once,
@@ -756,7 +756,7 @@ def _explicit_velocity(
         return jax.flatten_util.ravel_pytree(residual(unravel(x))[0])[0]
 
     r0 = flat_residual(flat_zeros)
-    x, regular, extra = linear_solve(jax.jacfwd(flat_residual)(flat_zeros), -r0)
+    x, regular, extra = linear_solve(dense_jacobian(flat_residual, flat_zeros), -r0)
     # The marker is a promise: if `L` is not quadratic in `v` after all, the one
     # solve is wrong, and the residual at its answer says so.
     v = unravel(x)

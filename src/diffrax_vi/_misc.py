@@ -1,3 +1,5 @@
+from collections.abc import Callable
+
 import equinox as eqx
 import jax
 import jax.extend.core as jex
@@ -164,13 +166,18 @@ def error_if(x: PyTree, failed: bool | Bool[Array, ""], message: str) -> PyTree:
     return x
 
 
-def has_loop(jaxpr: jex.Jaxpr) -> bool:
-    """Whether a traced program contains a `while` or `scan` (at any depth)."""
+def holds(jaxpr: jex.Jaxpr, found: Callable[[jex.JaxprEqn], bool]) -> bool:
+    """Whether a traced program holds an operation that `found` accepts (at any
+    depth)."""
     return any(
-        eqn.primitive.name in ("while", "scan")
-        or any(has_loop(sub) for sub in jex.jaxprs_in_params(eqn.params))
+        found(eqn) or any(holds(sub, found) for sub in jex.jaxprs_in_params(eqn.params))
         for eqn in jaxpr.eqns
     )
+
+
+def has_loop(jaxpr: jex.Jaxpr) -> bool:
+    """Whether a traced program contains a `while` or `scan` (at any depth)."""
+    return holds(jaxpr, lambda eqn: eqn.primitive.name in ("while", "scan"))
 
 
 # `call_traced_once(f, *args, **kwargs)` is `f(*args, **kwargs)` through a nested

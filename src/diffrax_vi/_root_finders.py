@@ -37,7 +37,10 @@ from equinox import AbstractClassVar, AbstractVar
 from jaxtyping import Array, Int, PyTree, Scalar
 
 from ._linear import (
+    columns,
+    dense_jacobian,
     dense_lu_solve,
+    holds_product,
     krylov_solve,
     pivot_ratio,
     product,
@@ -281,7 +284,12 @@ class Newton(AbstractNewtonFamily):
                 delta, result = sol.value, promote_result(optx.RESULTS, sol.result)
             elif self.dense(y):
                 flat_f, _ = jax.flatten_util.ravel_pytree(f)
-                matrix = operator.as_matrix()
+                flat_y, unravel = jax.flatten_util.ravel_pytree(y)
+                flat_lin = lambda x: jax.flatten_util.ravel_pytree(lin(unravel(x)))[0]
+                if holds_product(flat_lin, flat_y):
+                    matrix = columns(flat_lin, flat_y)
+                else:
+                    matrix = operator.as_matrix()
                 flat_delta, pivot_ratio = dense_lu_solve(
                     matrix, flat_f, NEWTON_DENSE_MAX
                 )
@@ -449,9 +457,10 @@ class SimplifiedNewton(AbstractNewtonFamily):
         unrolled = newton_is_dense(flat.shape[0])
 
         def factorise():
-            jac = jax.jacfwd(
-                lambda x: jax.flatten_util.ravel_pytree(fn(unravel(x), args)[0])[0]
-            )(flat)
+            def flat_residual(x):
+                return jax.flatten_util.ravel_pytree(fn(unravel(x), args)[0])[0]
+
+            jac = dense_jacobian(flat_residual, flat)
             factors = unrolled_lu_factor if unrolled else jax.scipy.linalg.lu_factor
             lu, piv = factors(jac)
             return lu, piv.astype(jnp.int32), jnp.array(True)
@@ -887,7 +896,7 @@ def _implicit_jvp(primals, tangents, *, find):
     _, moved = eqx.filter_jvp(lambda f: residual_at(f, root), (fn,), (t_fn,))
     if moved is None:  # The differentiated values do not enter the residual.
         return leaves, no_tangent
-    jacobian = jax.jacfwd(lambda w: residual_at(fn, unravel(w)))(flat_root)
+    jacobian = dense_jacobian(lambda w: residual_at(fn, unravel(w)), flat_root)
     # The transposed solve (reverse mode) factorises J^T itself: transposing the
     # elimination's row permutation (a gather) would put a scatter in the loop.
     t_root = lax.custom_linear_solve(

@@ -51,6 +51,7 @@ import numpy as np
 from jax.experimental import serialize_executable
 from jaxtyping import PyTree
 
+from .._misc import holds
 from .._private_api import persistent_cache_min_time
 
 
@@ -347,15 +348,7 @@ def _compile(
 def _holds_callback(jaxpr) -> bool:
     """Whether `jaxpr` (or one nested in it) calls back into Python: its executable
     calls into this process, and cannot be loaded in another."""
-    for eqn in jaxpr.eqns:
-        if "callback" in eqn.primitive.name:
-            return True
-        for value in eqn.params.values():
-            for item in value if isinstance(value, (tuple, list)) else (value,):
-                inner = getattr(item, "jaxpr", item)  # A closed jaxpr's own.
-                if hasattr(inner, "eqns") and _holds_callback(inner):
-                    return True
-    return False
+    return holds(jaxpr, lambda eqn: "callback" in eqn.primitive.name)
 
 
 @contextlib.contextmanager
