@@ -66,6 +66,15 @@ def columns(linear: Callable[[Array], Array], x: Array) -> Array:
     return lax.map(linear, jnp.eye(x.shape[0], dtype=x.dtype)).T
 
 
+def linear_matrix(linear: Callable[[Array], Array], x: Array) -> Array:
+    """The matrix of `linear`, a linear map of flat vectors like `x`: by `columns`
+    where it holds a matrix-vector product (`holds_product`), else by `vmap` over the
+    identity, as lineax's `as_matrix` takes it."""
+    if holds_product(linear, x):
+        return columns(linear, x)
+    return jax.vmap(linear, out_axes=1)(jnp.eye(x.shape[0], dtype=x.dtype))
+
+
 def dense_jacobian(fn: Callable[[Array], Array], x: Array) -> Array:
     """`jax.jacfwd(fn)(x)` for a function of a flat vector, column by column where
     `fn` holds a matrix-vector product (`holds_product`)."""

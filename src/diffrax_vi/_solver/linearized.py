@@ -3,6 +3,7 @@ from typing import Literal
 import diffrax as dfx
 import equinox as eqx
 import jax
+import jax.flatten_util
 import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
@@ -18,8 +19,8 @@ from .._discrete import (
     discrete_hamiltonian_map,
     MidpointRule,
 )
-from .._lagrangian import momentum_reads_position
-from .._linear import krylov_solve
+from .._lagrangian import inverse_legendre, momentum_reads_position
+from .._linear import krylov_solve, linear_matrix, unrolled_lu_solve
 from .._misc import (
     all_finite,
     state_dtype,
@@ -146,14 +147,22 @@ class LinearizedVI(AbstractVariationalSolver):
         return 1 if self.velocity == "forward" else 2
 
     def _linear_solve(self, matvec, rhs, guess, tags) -> tuple[PyTree, lx.RESULTS]:
-        # Conjugate gradients for a symmetric matrix at every size: no LAPACK call,
-        # so XLA compiles a small system's step whole.
-        dense = newton_is_dense(tree_size(rhs)) and not tags
-        if self.linear_solver is not None or dense:
+        # No LAPACK call, which would keep XLA from compiling the time-stepping loop
+        # whole: conjugate gradients for a symmetric matrix at every size, else an
+        # unrolled elimination of the dense matrix for a small system.
+        if self.linear_solver is not None:
             operator = lx.FunctionLinearOperator(matvec, jax.eval_shape(lambda: rhs))
-            solver = lx.LU() if self.linear_solver is None else self.linear_solver
-            sol = lx.linear_solve(operator, rhs, solver, throw=False)
+            sol = lx.linear_solve(operator, rhs, self.linear_solver, throw=False)
             return sol.value, sol.result
+        if newton_is_dense(tree_size(rhs)) and not tags:
+            flat_rhs, unravel = jax.flatten_util.ravel_pytree(rhs)
+            flat_matvec = lambda x: jax.flatten_util.ravel_pytree(matvec(unravel(x)))[0]
+            x, _ = unrolled_lu_solve(linear_matrix(flat_matvec, flat_rhs), flat_rhs)
+            # A singular matrix leaves a non-finite solution, as lineax's LU reports.
+            result = lx.RESULTS.where(
+                all_finite(x), lx.RESULTS.successful, lx.RESULTS.singular
+            )
+            return unravel(x), result
         # One solve with no Newton iteration to correct it: to near round-off.
         eps = float(jnp.finfo(tree_dtype(rhs)).eps)
         return krylov_solve(
@@ -212,15 +221,30 @@ class LinearizedVI(AbstractVariationalSolver):
                 "positions do not add. Use MidpointVI or TrapezoidalVI (or a "
                 "Composition of them)."
             )
-        q, p, t, h = step.q0, step.p0, step.t0, step.h
         # The start's velocity (the first Newton guess) and a check of the Lagrangian
         # there: the Legendre map must be invertible.
         start = check_start(step)
-        v_guess = start.v0
-        ok = start.result == dfx.RESULTS.successful
+        return self._past(step, start.v0, start.result == dfx.RESULTS.successful)
+
+    def _reanchored(self, step: StepInputs) -> History:
+        """`method_init`'s past, built in the time-stepping loop (after a jump or a
+        new step size) without its checks of the Lagrangian, which the solve's start
+        made: an eigensolver's LAPACK call and host callbacks there would keep XLA
+        from compiling the loop whole. A past that cannot be built is still
+        poisoned (`_past`)."""
+        v, result = inverse_legendre(
+            step.term.lagrangian, step.t0, (step.q0, step.p0), step.args, None, False
+        )
+        return self._past(step, v, result == dfx.RESULTS.successful)
+
+    def _past(self, step: StepInputs, v_guess, ok: Bool[Array, ""]) -> History:
+        """The past from backward steps from `step`'s start, the first Newton guess
+        `v_guess`; poisoned unless `ok` (the start's velocity was found)."""
+        h = step.h
         root_finder = Newton() if self.root_finder is None else self.root_finder
-        qs = []
-        for _ in range(self._n_past()):
+
+        def backward(carry, _):
+            q, p, t, v_guess, ok = carry
             dq, dp, v_guess, result = discrete_hamiltonian_map(
                 self.discrete_lagrangian,
                 step.term.lagrangian,
@@ -234,14 +258,21 @@ class LinearizedVI(AbstractVariationalSolver):
                 self.root_find_max_steps,
             )
             q = tree_add(q, dq)
-            p = tree_add(p, dp)
-            qs.append(q)
-            t = t - h
             ok = ok & (result == dfx.RESULTS.successful)
+            return (q, tree_add(p, dp), t - h, v_guess, ok), q
+
+        # A loop, not one root find per past step in the program: the past is built
+        # at the start and again in the time-stepping loop's branch that re-anchors
+        # it, which took a 16-bead wire's solve 25 s to compile with three copies.
+        start = (step.q0, step.p0, step.t0, v_guess, ok)
+        (*_, ok), qs = lax.scan(backward, start, length=self._n_past())
         # A history that could not be built (singular d2L/dv2, no root) is poisoned,
         # so the first step reports it instead of linearizing about garbage.
-        qs = jtu.tree_map(lambda x: jnp.where(ok, x, jnp.nan), qs)
-        return History(tuple(qs), tuple(h for _ in qs), tree_max_abs(step.p0))
+        qs = tuple(
+            jtu.tree_map(lambda x: jnp.where(ok, x[i], jnp.nan), qs)
+            for i in range(self._n_past())
+        )
+        return History(qs, tuple(h for _ in qs), tree_max_abs(step.p0))
 
     def method_step(
         self, step: StepInputs, state: History, made_jump: Bool[ArrayLike, ""]
@@ -255,7 +286,7 @@ class LinearizedVI(AbstractVariationalSolver):
         changed = jnp.abs(step.h - state.steps[0]) > STEP_CHANGE * jnp.abs(step.h)
         history = lax.cond(
             unvmap_any(made_jump | changed),
-            lambda: self.method_init(step),
+            lambda: self._reanchored(step),
             lambda: state,
         )
         qs, hs = history.positions, history.steps
@@ -338,9 +369,11 @@ LinearizedVI.__init__.__doc__ = r"""**Arguments:**
     [`diffrax_vi.MidpointRule`][] (default) or [`diffrax_vi.TrapezoidalRule`][].
 - `linear_solver`: the lineax solver for the step's linear system. Defaults to
     conjugate gradients to near round-off at every size where $\partial L/\partial v$
-    does not depend on $q$ (the matrix is then symmetric); else LU up to 16 degrees
-    of freedom and, beyond, BiCGStab to near round-off (conjugate gradients on the
-    normal equations where it breaks down).
+    does not depend on $q$ (the matrix is then symmetric); else an unrolled LU
+    elimination with partial pivoting up to 16 degrees of freedom (no LAPACK call:
+    XLA on CPU compiles the time-stepping loop whole) and, beyond, BiCGStab to near
+    round-off (conjugate gradients on the normal equations where it breaks down). A
+    lineax solver given here is used as it is.
 - `root_finder`, `root_find_max_steps`: for the backward variational steps that build
     the starting history (at `init` and after a jump); as for
     [`diffrax_vi.MidpointVI`][].
