@@ -18,10 +18,19 @@ loop breakers `diffrax_vi.diagnostics.loop_breakers` finds in each; the compile
 time; the run time of each (best of 5, taken in turns) and of the forward solve; and
 the largest relative difference between the two gradients.
 
+`LinearizedVI` solves one linear system a step, which its gradient differentiates
+as a linear solve (`_linear.implicit_lu_solve`, `_linear.krylov_solve`): a
+derivative is one more solve of the same system. Its reference differentiates the
+same solves through lineax's derivative of its conjugate gradients (whose tangent
+and transposed solves check themselves by a host callback) and through the
+elimination itself (whose row permutation transposes into a scatter): what the
+package did before.
+
 Run: `taskset -c 1 python benchmarks/gradient_loops.py` (recorded:
 `results/gradient_loops_cpu.txt`).
 """
 
+import contextlib
 import pathlib
 import sys
 import time
@@ -29,12 +38,15 @@ import time
 import diffrax as dfx
 import equinox as eqx
 import jax
+import jax.lax as lax
 import jax.numpy as jnp
+import jax.tree_util as jtu
 
 
 jax.config.update("jax_enable_x64", True)
 import diffrax_vi as dvi  # noqa: E402
-from diffrax_vi import _root_finders  # noqa: E402
+from diffrax_vi import _linear, _root_finders  # noqa: E402
+from diffrax_vi._solver import linearized  # noqa: E402
 from diffrax_vi.study import make_solver  # noqa: E402
 
 
@@ -51,14 +63,48 @@ CASES = [
     ("rigid_double_pendulum", "TrapezoidalVI"),
     ("rigid_chain", "TrapezoidalVI"),
 ]
+LINEARIZED = ["kepler", "henon_heiles", "fpu", "double_pendulum"]
 STEPS = 400
-
-OURS = _root_finders._implicit_solve
 
 
 def reference(find, residual, guess, preconditioner, carry):
     """The root find with optimistix's own `ImplicitAdjoint`."""
     return find(residual, guess, preconditioner, carry)
+
+
+def lineax_krylov(matvec, rhs, rtol, tags, max_steps, preconditioner=None, guess=None):
+    """`_linear.krylov_solve`'s iteration, differentiated by lineax's derivative of
+    its own solve."""
+    guess = lax.stop_gradient(guess)
+    residual = jtu.tree_map(lambda b, a: b - a, rhs, matvec(guess))
+    value, result = _linear.krylov_iterate(
+        matvec, residual, rtol, tags, max_steps, preconditioner
+    )
+    return jtu.tree_map(lambda x, g: x + g, value, guess), result
+
+
+def differentiated_elimination(matvec, matrix, b, unrolled_max):
+    """`_linear.implicit_lu_solve`'s elimination, differentiated through."""
+    return _linear.dense_lu_solve(matrix, b, unrolled_max)[0]
+
+
+@contextlib.contextmanager
+def patched(module, **values):
+    """`module`'s attributes set to `values` for the span of the block (none: the
+    package as it is); caches cleared on the way in and out, so that each variant
+    is traced afresh."""
+    saved = {name: getattr(module, name) for name in values}
+    for name, value in values.items():
+        setattr(module, name, value)
+    jax.clear_caches()
+    eqx.clear_caches()
+    try:
+        yield
+    finally:
+        for name, value in saved.items():
+            setattr(module, name, value)
+        jax.clear_caches()
+        eqx.clear_caches()
 
 
 def compiled(fn, y0):
@@ -105,6 +151,30 @@ def compare(programs, final, y0):
     return difference, best_times([*programs, forward], y0, repeats=5)
 
 
+def measure(scene_name, solver_name, solver, reference_variant) -> None:
+    """Print one row: the gradient of the scene's solve by `solver` as the package
+    takes it and under `reference_variant` (a context manager), compiled and run in
+    turns."""
+    scene = dvi.scenes.SCENES[scene_name]()
+    final, loss = solve_to_period(scene, solver)
+    programs, rows = [], []
+    for variant in (patched(_root_finders), reference_variant):
+        with variant:
+            program, seconds = compiled(jax.grad(loss), scene.y0)
+        programs.append(program)
+        breakers = dvi.diagnostics.loop_breakers(program.as_text())
+        rows.append((len(breakers), seconds))
+    difference, (t_ours, t_ref, t_forward) = compare(programs, final, scene.y0)
+    print(
+        f"  {scene_name:16s} {solver_name:14s} breakers {rows[0][0]:2d} vs "
+        f"{rows[1][0]:2d}  compile {rows[0][1]:5.1f} vs {rows[1][1]:5.1f} s  "
+        f"run {t_ours * 1e3:6.2f} vs {t_ref * 1e3:6.2f} ms "
+        f"({t_ref / t_ours:4.1f}x faster; {t_ours / t_forward:4.1f}x forward)  "
+        f"gradients differ by {difference:.0e}",
+        flush=True,
+    )
+
+
 def main() -> None:
     print(f"jax {jax.__version__}, diffrax {dfx.__version__}, {jax.devices()[0]}")
     print(
@@ -112,27 +182,20 @@ def main() -> None:
         "against optimistix's ImplicitAdjoint; loop breakers, compile s, run ms"
     )
     for scene_name, solver_name in CASES:
-        scene = dvi.scenes.SCENES[scene_name]()
-        final, loss = solve_to_period(scene, make_solver(solver_name))
-        programs, rows = [], []
-        for implicit in (OURS, reference):
-            _root_finders._implicit_solve = implicit
-            jax.clear_caches()
-            eqx.clear_caches()
-            program, seconds = compiled(jax.grad(loss), scene.y0)
-            programs.append(program)
-            breakers = dvi.diagnostics.loop_breakers(program.as_text())
-            rows.append((len(breakers), seconds))
-        _root_finders._implicit_solve = OURS
-        difference, (t_ours, t_ref, t_forward) = compare(programs, final, scene.y0)
-        print(
-            f"  {scene_name:16s} {solver_name:14s} breakers {rows[0][0]:2d} vs "
-            f"{rows[1][0]:2d}  compile {rows[0][1]:5.1f} vs {rows[1][1]:5.1f} s  "
-            f"run {t_ours * 1e3:6.2f} vs {t_ref * 1e3:6.2f} ms "
-            f"({t_ref / t_ours:4.1f}x faster; {t_ours / t_forward:4.1f}x forward)  "
-            f"gradients differ by {difference:.0e}",
-            flush=True,
+        reference_variant = patched(_root_finders, _implicit_solve=reference)
+        measure(scene_name, solver_name, make_solver(solver_name), reference_variant)
+    print(
+        "LinearizedVI (forward velocities): its linear solve differentiated as one, "
+        "against lineax's derivative of its conjugate gradients and the elimination "
+        "differentiated through"
+    )
+    for scene_name in LINEARIZED:
+        reference_variant = patched(
+            linearized,
+            krylov_solve=lineax_krylov,
+            implicit_lu_solve=differentiated_elimination,
         )
+        measure(scene_name, "LinearizedVI", dvi.LinearizedVI(), reference_variant)
 
 
 if __name__ == "__main__":

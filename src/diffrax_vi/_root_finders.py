@@ -41,7 +41,8 @@ from ._linear import (
     dense_jacobian,
     dense_lu_solve,
     holds_product,
-    krylov_solve,
+    implicit_lu_solve,
+    krylov_iterate,
     pivot_ratio,
     product,
     unpivoted_solve,
@@ -309,7 +310,7 @@ class Newton(AbstractNewtonFamily):
                     0.5,
                 )
                 forcing = jnp.where(jnp.isfinite(state.rho_prev), forcing, 0.5)
-                delta, linear_result = krylov_solve(
+                delta, linear_result = krylov_iterate(
                     lin,
                     f,
                     forcing,
@@ -897,12 +898,7 @@ def _implicit_jvp(primals, tangents, *, find):
     if moved is None:  # The differentiated values do not enter the residual.
         return leaves, no_tangent
     jacobian = dense_jacobian(lambda w: residual_at(fn, unravel(w)), flat_root)
-    # The transposed solve (reverse mode) factorises J^T itself: transposing the
-    # elimination's row permutation (a gather) would put a scatter in the loop.
-    t_root = lax.custom_linear_solve(
-        lambda x: product(jacobian, x),
-        -moved,
-        lambda _, b: dense_lu_solve(jacobian, b, NEWTON_DENSE_MAX)[0],
-        lambda _, b: dense_lu_solve(jacobian.T, b, NEWTON_DENSE_MAX)[0],
+    t_root = implicit_lu_solve(
+        lambda x: product(jacobian, x), jacobian, -moved, NEWTON_DENSE_MAX
     )
     return leaves, jtu.tree_leaves(unravel(t_root)) + no_tangent[n_value:]

@@ -20,7 +20,7 @@ from .._discrete import (
     MidpointRule,
 )
 from .._lagrangian import inverse_legendre, momentum_reads_position
-from .._linear import krylov_solve, linear_matrix, unrolled_lu_solve
+from .._linear import implicit_lu_solve, krylov_solve, linear_matrix
 from .._misc import (
     all_finite,
     state_dtype,
@@ -36,6 +36,7 @@ from .._space import is_euclidean
 from .._tolerance import (
     LINEARIZED_RTOL,
     LINEARIZED_STEPS_PER_UNKNOWN,
+    NEWTON_DENSE_MAX,
     newton_is_dense,
 )
 from .base import (
@@ -149,7 +150,9 @@ class LinearizedVI(AbstractVariationalSolver):
     def _linear_solve(self, matvec, rhs, guess, tags) -> tuple[PyTree, lx.RESULTS]:
         # No LAPACK call, which would keep XLA from compiling the time-stepping loop
         # whole: conjugate gradients for a symmetric matrix at every size, else an
-        # unrolled elimination of the dense matrix for a small system.
+        # unrolled elimination of the dense matrix for a small system. Either is
+        # differentiated as a linear solve, without a host callback or a scatter in
+        # a gradient's loop (`implicit_lu_solve`, `krylov_solve`).
         if self.linear_solver is not None:
             operator = lx.FunctionLinearOperator(matvec, jax.eval_shape(lambda: rhs))
             sol = lx.linear_solve(operator, rhs, self.linear_solver, throw=False)
@@ -157,7 +160,8 @@ class LinearizedVI(AbstractVariationalSolver):
         if newton_is_dense(tree_size(rhs)) and not tags:
             flat_rhs, unravel = jax.flatten_util.ravel_pytree(rhs)
             flat_matvec = lambda x: jax.flatten_util.ravel_pytree(matvec(unravel(x)))[0]
-            x, _ = unrolled_lu_solve(linear_matrix(flat_matvec, flat_rhs), flat_rhs)
+            matrix = linear_matrix(flat_matvec, flat_rhs)
+            x = implicit_lu_solve(flat_matvec, matrix, flat_rhs, NEWTON_DENSE_MAX)
             # A singular matrix leaves a non-finite solution, as lineax's LU reports.
             result = lx.RESULTS.where(
                 all_finite(x), lx.RESULTS.successful, lx.RESULTS.singular
