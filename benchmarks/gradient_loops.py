@@ -5,7 +5,11 @@ Each implicit step that Newton's method factorises densely (up to 16 unknowns, a
 constrained step's up to 128) is differentiated by the implicit function theorem with
 the forward solves' elimination, unrolled up to 16 unknowns and rolled into a loop
 beyond (`_root_finders._implicit_solve`): the rigid double pendulum's steps have 18
-unknowns, the 4-link chain's 36.
+unknowns, the 4-link chain's 36. Beyond 16 unknowns an unconstrained step's Newton
+solves are matrix-free, and so is its derivative: conjugate gradients on
+Jacobian-vector products (the outer solar system's 18 unknowns and a generic chain's
+256), on the normal equations where the Jacobian is not symmetric (the bead wire's
+32 and 128).
 The reference differentiates the same root find with optimistix's default
 `ImplicitAdjoint`, whose lineax LU is a LAPACK call and whose solve check is a host
 callback: both break the backward loop into kernels dispatched one by one. The
@@ -63,11 +67,36 @@ CASES = [
     ("rigid_double_pendulum", "TrapezoidalVI"),
     ("rigid_chain", "TrapezoidalVI"),
 ]
+MATRIX_FREE = [
+    ("outer_solar_system", lambda: dvi.scenes.outer_solar_system()),
+    ("bead_wire", lambda: dvi.scenes.bead_wire()),
+    ("bead_wire(128)", lambda: dvi.scenes.bead_wire(128)),
+    ("generic chain 256", lambda: generic_chain(256)),
+]
 LINEARIZED = ["kepler", "henon_heiles", "fpu", "double_pendulum"]
 STEPS = 400
 
 
-def reference(find, residual, guess, preconditioner, carry):
+class GenericChain(dvi.AbstractLagrangian):
+    """A chain with quartic springs written as a plain function of (t, q, v, args),
+    fixed at both ends: Newton's method, matrix-free beyond 16 masses."""
+
+    def __call__(self, t, q, v, args):
+        r = jnp.diff(jnp.concatenate([jnp.zeros(1), q, jnp.zeros(1)]))
+        return 0.5 * jnp.sum(v**2) - jnp.sum(0.5 * r**2 + 0.25 * r**4)
+
+
+def generic_chain(n: int) -> dvi.scenes.Scene:
+    """`GenericChain` of `n` masses released from rest in three half waves, over a
+    period of 20 (time units of its unit springs)."""
+    i = jnp.arange(1.0, n + 1.0)
+    y0 = (0.1 * jnp.sin(3 * jnp.pi * i / (n + 1)), jnp.zeros(n))
+    return dvi.scenes.Scene(
+        name=f"generic_chain_{n}", lagrangian=GenericChain(), y0=y0, period=20.0
+    )
+
+
+def reference(find, residual, guess, preconditioner, carry, krylov_tags=None):
     """The root find with optimistix's own `ImplicitAdjoint`."""
     return find(residual, guess, preconditioner, carry)
 
@@ -151,11 +180,11 @@ def compare(programs, final, y0):
     return difference, best_times([*programs, forward], y0, repeats=5)
 
 
-def measure(scene_name, solver_name, solver, reference_variant) -> None:
+def measure(scene_name, solver_name, solver, reference_variant, scene=None) -> None:
     """Print one row: the gradient of the scene's solve by `solver` as the package
     takes it and under `reference_variant` (a context manager), compiled and run in
-    turns."""
-    scene = dvi.scenes.SCENES[scene_name]()
+    turns (`scene`: the scene, if not `scene_name`'s default)."""
+    scene = dvi.scenes.SCENES[scene_name]() if scene is None else scene
     final, loss = solve_to_period(scene, solver)
     programs, rows = [], []
     for variant in (patched(_root_finders), reference_variant):
@@ -184,6 +213,13 @@ def main() -> None:
     for scene_name, solver_name in CASES:
         reference_variant = patched(_root_finders, _implicit_solve=reference)
         measure(scene_name, solver_name, make_solver(solver_name), reference_variant)
+    print(
+        "matrix-free Newton steps (beyond 16 unknowns): ours differentiated by the "
+        "Krylov method of the forward solves, against optimistix's ImplicitAdjoint"
+    )
+    for label, make_scene in MATRIX_FREE:
+        reference_variant = patched(_root_finders, _implicit_solve=reference)
+        measure(label, "MidpointVI", dvi.MidpointVI(), reference_variant, make_scene())
     print(
         "LinearizedVI (forward velocities): its linear solve differentiated as one, "
         "against lineax's derivative of its conjugate gradients and the elimination "

@@ -294,6 +294,7 @@ def krylov_solve(
     max_steps: int,
     preconditioner: PyTree | None = None,
     guess: PyTree | None = None,
+    normal: bool = False,
 ) -> tuple[PyTree, lx.RESULTS]:
     """`krylov_iterate`'s solve of a system whose solution is differentiated (a
     linearized step's, an affine Legendre map's), by the implicit function theorem:
@@ -304,7 +305,7 @@ def krylov_solve(
     one (`diagnostics.loop_breakers`): `LinearizedVI`'s checkpointed gradient on
     Kepler took 19.5 against 1.38 us a step (CHANGELOG). The iteration starts from
     zero on `rhs - A guess` and adds `guess` back, so that the solves of the
-    derivatives start from zero too."""
+    derivatives start from zero too. `normal`: as `krylov_iterate`."""
     # The guess and the preconditioner do not change the solution, and the solve
     # does not differentiate its aids: their derivatives are dropped.
     guess, preconditioner = lax.stop_gradient((guess, preconditioner))
@@ -313,7 +314,9 @@ def krylov_solve(
     symmetric = lx.symmetric_tag in tags
 
     def solve(operator, b):
-        return krylov_iterate(operator, b, rtol, tags, max_steps, preconditioner)
+        return krylov_iterate(
+            operator, b, rtol, tags, max_steps, preconditioner, normal
+        )
 
     value, result = lax.custom_linear_solve(
         matvec,
@@ -335,17 +338,20 @@ def krylov_iterate(
     tags: frozenset,
     max_steps: int,
     preconditioner: PyTree | None = None,
+    normal: bool = False,
 ) -> tuple[PyTree, lx.RESULTS]:
     """`A^{-1} b` for the operator `matvec`, matrix-free, from zero: conjugate
     gradients where `tags` say symmetric positive or negative (semi)definite, else
     BiCGStab, and conjugate gradients on the normal equations where BiCGStab breaks
-    down; to relative accuracy `rtol`, preconditioned by positive diagonal weights
-    `preconditioner`. Newton's updates call it as it is (the root, not the
-    iteration, is differentiated); a solution that is differentiated takes
-    `krylov_solve`. (Not lineax's GMRES: it makes all 20 Arnoldi steps of a cycle
-    before it tests convergence, 20 products where a nearly diagonal Newton matrix
-    needs 2; and its least-squares solve is a LAPACK call, which even as a branch
-    never taken keeps XLA on CPU from compiling a small loop whole.)
+    down (with `normal`, those alone, which do not break down as BiCGStab can: half
+    the program, for a derivative's solve); to relative accuracy `rtol`,
+    preconditioned by positive diagonal weights `preconditioner`. Newton's updates
+    call it as it is (the root, not the iteration, is differentiated); a solution
+    that is differentiated takes `krylov_solve`. (Not lineax's GMRES: it makes all
+    20 Arnoldi steps of a cycle before it tests convergence, 20 products where a
+    nearly diagonal Newton matrix needs 2; and its least-squares solve is a LAPACK
+    call, which even as a branch never taken keeps XLA on CPU from compiling a
+    small loop whole.)
 
     The solve runs on `A / c` and `b / |b|`, with `c` the size of `A` along `b`:
     lineax's tests are absolute (GMRES broke down on a right-hand side below about
@@ -377,11 +383,15 @@ def krylov_iterate(
         sol = lx.linear_solve(operator, b, solver, options=options, throw=False)
         return sol.value, sol.result
 
+    normal_cg = lx.Normal(lx.CG(rtol=rtol, atol=rtol, max_steps=max_steps))
     if tags & {lx.positive_semidefinite_tag, lx.negative_semidefinite_tag}:
         value, result = solve(lx.CG(rtol=rtol, atol=rtol, max_steps=max_steps))
+    elif normal:
+        value, result = solve(normal_cg)
     else:
         value, result = solve(lx.BiCGStab(rtol=rtol, atol=rtol, max_steps=max_steps))
-        normal = lx.Normal(lx.CG(rtol=rtol, atol=rtol, max_steps=max_steps))
         failed = unvmap_any(result != lx.RESULTS.successful)
-        value, result = lax.cond(failed, lambda: solve(normal), lambda: (value, result))
+        value, result = lax.cond(
+            failed, lambda: solve(normal_cg), lambda: (value, result)
+        )
     return jtu.tree_map(lambda x: x * (b_size / a_size), value), result
