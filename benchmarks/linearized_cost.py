@@ -1,7 +1,10 @@
 """Per-step cost of LinearizedVI (one linear solve) over MidpointVI (Newton) on a
-nonlinear chain, as ratios measured in one run.
+nonlinear chain, as ratios measured in one run; and, for small systems, its solve by
+dense elimination (the default up to `LINEARIZED_DENSE_MAX` unknowns where the
+matrix is symmetric) against conjugate gradients, which take the larger ones.
 
-Run: `python benchmarks/linearized_cost.py`.
+Run: `python benchmarks/linearized_cost.py` (recorded:
+`results/linearized_cost_cpu.txt`).
 """
 
 import pathlib
@@ -16,24 +19,28 @@ import jax.numpy as jnp
 jax.config.update("jax_enable_x64", True)
 
 import diffrax_vi as dvi  # noqa: E402
+from diffrax_vi._solver import linearized  # noqa: E402
 
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
 from step_cost import Chain  # noqa: E402
 
 
-def per_step(solver, y0, h, n, repeats=3):
+def per_step(solver, y0, h, n, repeats=3, term=None, args=None):
+    term = dvi.LagrangianTerm(Chain()) if term is None else term
     f = jax.jit(
         lambda y: (
             dfx.diffeqsolve(
-                dvi.LagrangianTerm(Chain()),
+                term,
                 solver,
                 0.0,
                 h * n,
                 h,
                 y,
+                args,
                 saveat=dfx.SaveAt(t1=True),
                 max_steps=n,
+                throw=False,
             ).ys
         )
     )
@@ -46,8 +53,41 @@ def per_step(solver, y0, h, n, repeats=3):
     return 1e6 * best / n
 
 
+def small_systems(n=4000):
+    """LinearizedVI's step on small symmetric systems, its solve by dense
+    elimination against conjugate gradients (each forced through
+    `LINEARIZED_DENSE_MAX`), in turns."""
+    default = linearized.LINEARIZED_DENSE_MAX
+    print(
+        f"\nsmall symmetric systems, {n} steps, per step (dense elimination up to "
+        f"{default} unknowns by default):"
+    )
+    cases = []
+    for name in ("oscillator", "kepler", "henon_heiles"):
+        scene = dvi.scenes.SCENES[name]()
+        cases.append((name, scene.term(), scene.y0, scene.period / 200, scene.args))
+    for dof in (3, 4, 6, 8):
+        y0 = (jnp.sin(jnp.linspace(0, jnp.pi, dof)), jnp.zeros(dof))
+        cases.append((f"chain, {dof} DOF", dvi.LagrangianTerm(Chain()), y0, 0.02, None))
+    try:
+        for name, term, y0, h, args in cases:
+            times = {}
+            for label, limit in (("dense", 10**9), ("CG", 0)):
+                linearized.LINEARIZED_DENSE_MAX = limit
+                jax.clear_caches()  # diffeqsolve's trace read the limit
+                times[label] = per_step(dvi.LinearizedVI(), y0, h, n, 5, term, args)
+            dense, cg = times["dense"], times["CG"]
+            print(
+                f"  {name:<14} dense {dense:7.3f} us   CG {cg:7.3f} us"
+                f"   ({dense / cg:.2f}x)"
+            )
+    finally:
+        linearized.LINEARIZED_DENSE_MAX = default
+
+
 def main():
     print(f"device {jax.devices()[0]}")
+    small_systems()
     for dof, n in [(32, 4000), (64, 2000)]:
         y0 = (jnp.sin(jnp.linspace(0, jnp.pi, dof)), jnp.zeros(dof))
         h = 0.02

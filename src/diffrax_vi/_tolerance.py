@@ -35,6 +35,12 @@ NEWTON_DENSE_MAX = 16
 # `NEWTON_DENSE_MAX` unknowns, rolled into a loop beyond (`_linear.dense_lu_solve`).
 CONSTRAINED_DENSE_MAX = 128
 
+# A linearized step's symmetric system of at most this many unknowns is eliminated
+# densely, as its other small systems are; beyond, conjugate gradients take it. The
+# elimination's steps take 0.4-0.8x CG's up to 4 unknowns, 1.04-1.07x at 6 and 8
+# (`benchmarks/linearized_cost.py`).
+LINEARIZED_DENSE_MAX = 4
+
 
 def newton_is_dense(n: int) -> bool:
     """Whether a Newton-type linear solve with `n` unknowns factorises a dense

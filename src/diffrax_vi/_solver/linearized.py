@@ -34,6 +34,7 @@ from .._private_api import promote_result, unvmap_any
 from .._root_finders import Newton
 from .._space import is_euclidean
 from .._tolerance import (
+    LINEARIZED_DENSE_MAX,
     LINEARIZED_RTOL,
     LINEARIZED_STEPS_PER_UNKNOWN,
     NEWTON_DENSE_MAX,
@@ -149,15 +150,18 @@ class LinearizedVI(AbstractVariationalSolver):
 
     def _linear_solve(self, matvec, rhs, guess, tags) -> tuple[PyTree, lx.RESULTS]:
         # No LAPACK call, which would keep XLA from compiling the time-stepping loop
-        # whole: conjugate gradients for a symmetric matrix at every size, else an
-        # unrolled elimination of the dense matrix for a small system. Either is
+        # whole: an unrolled elimination of the dense matrix for a small system (up
+        # to LINEARIZED_DENSE_MAX unknowns where it is symmetric, NEWTON_DENSE_MAX
+        # where it is not), else conjugate gradients for a symmetric matrix and
+        # BiCGStab for another. Either is
         # differentiated as a linear solve, without a host callback or a scatter in
         # a gradient's loop (`implicit_lu_solve`, `krylov_solve`).
         if self.linear_solver is not None:
             operator = lx.FunctionLinearOperator(matvec, jax.eval_shape(lambda: rhs))
             sol = lx.linear_solve(operator, rhs, self.linear_solver, throw=False)
             return sol.value, sol.result
-        if newton_is_dense(tree_size(rhs)) and not tags:
+        n = tree_size(rhs)
+        if n <= LINEARIZED_DENSE_MAX or (newton_is_dense(n) and not tags):
             flat_rhs, unravel = jax.flatten_util.ravel_pytree(rhs)
             flat_matvec = lambda x: jax.flatten_util.ravel_pytree(matvec(unravel(x)))[0]
             matrix = linear_matrix(flat_matvec, flat_rhs)
@@ -371,13 +375,14 @@ LinearizedVI.__init__.__doc__ = r"""**Arguments:**
     `"centered"` (§5.6, $u_k = (q_{k+1} - q_{k-1})/(2h)$).
 - `discrete_lagrangian`: the discrete Lagrangian whose DEL equations are linearized:
     [`diffrax_vi.MidpointRule`][] (default) or [`diffrax_vi.TrapezoidalRule`][].
-- `linear_solver`: the lineax solver for the step's linear system. Defaults to
-    conjugate gradients to near round-off at every size where $\partial L/\partial v$
-    does not depend on $q$ (the matrix is then symmetric); else an unrolled LU
-    elimination with partial pivoting up to 16 degrees of freedom (no LAPACK call:
-    XLA on CPU compiles the time-stepping loop whole) and, beyond, BiCGStab to near
-    round-off (conjugate gradients on the normal equations where it breaks down). A
-    lineax solver given here is used as it is.
+- `linear_solver`: the lineax solver for the step's linear system. Defaults to an
+    unrolled LU elimination with partial pivoting (no LAPACK call: XLA on CPU
+    compiles the time-stepping loop whole) up to 4 degrees of freedom, and beyond:
+    conjugate gradients to near round-off where $\partial L/\partial v$ does not
+    depend on $q$ (the matrix is then symmetric); else the elimination up to 16
+    degrees of freedom and BiCGStab to near round-off beyond (conjugate gradients on
+    the normal equations where it breaks down). A lineax solver given here is used
+    as it is.
 - `root_finder`, `root_find_max_steps`: for the backward variational steps that build
     the starting history (at `init` and after a jump); as for
     [`diffrax_vi.MidpointVI`][].
