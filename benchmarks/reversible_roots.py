@@ -5,10 +5,13 @@ differentiates the forward step from it. A symmetric implicit method knows that
 forward step's root from the inverse step's (`root_of_inverse`: the same
 velocities, a Gauss method's stages in reverse order, `LGVI`'s velocity 2f/h, a
 constrained step's multipliers from the inverse step's momentum projection), and
-the adjoint takes it, differentiated by the implicit function theorem there,
-instead of solving the step's equations again. The reference solves them again, as
-the adjoint did before (and still does with `checkpoint_every`): it is run here by
-patching the choice (`_adjoint._takes_inverse_roots`) to "no".
+the adjoint takes it, differentiated by the implicit function theorem there (by
+the forward solves' dense elimination, or beyond 16 unknowns matrix-free, as
+Newton's method solves them), instead of solving the step's equations again. The
+reference solves them again, as the adjoint did before (and still does with
+`checkpoint_every`; beyond 16 unknowns, before the matrix-free derivative of a
+known root): it is run here by patching the choice
+(`_adjoint._takes_inverse_roots`) to "no".
 
 For each case: `jax.grad` of the sum of the final state over 400 steps of
 `diffeqsolve`, compiled once per variant in this process (caches cleared between);
@@ -35,7 +38,13 @@ from diffrax_vi.study import make_solver  # noqa: E402
 
 
 sys.path.insert(0, str(pathlib.Path(__file__).parent))
-from gradient_loops import compare, compiled, solve_to_period, STEPS  # noqa: E402
+from gradient_loops import (  # noqa: E402
+    compare,
+    compiled,
+    generic_chain,
+    solve_to_period,
+    STEPS,
+)
 
 
 CASES = [
@@ -46,7 +55,14 @@ CASES = [
     ("heavy_top", "LGVI"),
     ("four_bar", "MidpointVI"),
     ("rigid_double_pendulum", "TrapezoidalVI"),
+    # Beyond 16 unknowns, unconstrained: Newton's solves and the root's derivative
+    # are matrix-free (conjugate gradients; on the normal equations for the bead
+    # wire, whose Jacobian is not symmetric).
+    ("outer_solar_system", "MidpointVI"),
+    ("bead_wire", "MidpointVI"),
+    ("generic chain 256", "MidpointVI"),
 ]
+SCENES = {"generic chain 256": lambda: generic_chain(256)}
 TAKEN = _adjoint._takes_inverse_roots
 
 
@@ -62,7 +78,7 @@ def main() -> None:
         "program, trace + compile s, run ms"
     )
     for scene_name, solver_name in CASES:
-        scene = dvi.scenes.SCENES[scene_name]()
+        scene = SCENES.get(scene_name, dvi.scenes.SCENES.get(scene_name))()
         final, loss = solve_to_period(
             scene, make_solver(solver_name), dvi.ReversibleAdjoint()
         )
@@ -79,7 +95,7 @@ def main() -> None:
         _adjoint._takes_inverse_roots = TAKEN
         difference, (t_taken, t_again, t_forward) = compare(programs, final, scene.y0)
         print(
-            f"  {scene_name:16s} {solver_name:14s} root solves {rows[0][0]} vs "
+            f"  {scene_name:21s} {solver_name:14s} root solves {rows[0][0]} vs "
             f"{rows[1][0]}  compile {rows[0][1]:5.2f} vs {rows[1][1]:5.2f} s  "
             f"run {t_taken * 1e3:6.2f} vs {t_again * 1e3:6.2f} ms "
             f"({t_again / t_taken:4.2f}x faster; {t_taken / t_forward:4.1f}x forward)"

@@ -127,7 +127,13 @@ def test_krylov_newton_gradient_equals_dense_newtons(system):
     gradient of 10 `MidpointVI` steps equals the one through dense eliminations
     (`Newton(linear_solver="dense")`) to 1e-10, and its backward loop holds no
     LAPACK call and no host callback (optimistix's `ImplicitAdjoint` solves there by
-    lineax's LU and checks the solve)."""
+    lineax's LU and checks the solve).
+
+    So does the bead wire's gradient under `ReversibleAdjoint`, whose backward
+    steps take the roots of the inverse steps that have just undone them,
+    differentiated matrix-free there (`known_root`): its program holds 5 root
+    solves, not the 6 of solving those steps again (as with `checkpoint_every`,
+    whose steps from an anchor must)."""
     from diffrax_vi.diagnostics import loop_breakers
 
     if system == "bead_wire":
@@ -138,24 +144,40 @@ def test_krylov_newton_gradient_equals_dense_newtons(system):
         lagrangian, h = _Chain(), 0.1
         y0 = (0.3 * jnp.sin(2.1 * jnp.arange(1.0, n + 1.0)), jnp.zeros(n))
 
-    def gradient(root_finder):
-        def loss(q0):
-            q, p = final_state(
-                lagrangian,
+    def loss(root_finder=None, adjoint=dfx.RecursiveCheckpointAdjoint()):
+        def fn(q0):
+            sol = dfx.diffeqsolve(
+                dvi.LagrangianTerm(lagrangian),
                 dvi.MidpointVI(root_finder=root_finder),
-                (q0, y0[1]),
+                0.0,
                 10 * h,
                 h,
+                (q0, y0[1]),
+                adjoint=adjoint,
             )
-            return jnp.sum(jnp.sin(q)) + jnp.sum(jnp.sin(p))
+            return sum(jnp.sum(jnp.sin(x[-1])) for x in sol.ys)
 
-        return jax.jit(jax.grad(loss)).lower(y0[0]).compile()
+        return jax.grad(fn)
 
-    matrix_free = gradient(None)
-    assert loop_breakers(matrix_free.as_text()) == []
-    dense = gradient(dvi.Newton(linear_solver="dense"))(y0[0])
-    assert max_abs_diff(matrix_free(y0[0]), dense) < 1e-10 * jnp.max(jnp.abs(dense))
+    def compiled(gradient):
+        program = jax.jit(gradient).lower(y0[0]).compile()
+        assert loop_breakers(program.as_text()) == []
+        return program(y0[0])
+
+    dense = loss(dvi.Newton(linear_solver="dense"))(y0[0])
     assert jnp.max(jnp.abs(dense)) > 1e-2
+    gradients = [compiled(loss())]
+    if system == "bead_wire":
+
+        def solves(adjoint):
+            program = jax.make_jaxpr(loss(adjoint=adjoint))(y0[0])
+            return str(program).count("name=root_find")
+
+        assert solves(dvi.ReversibleAdjoint()) == 5
+        assert solves(dvi.ReversibleAdjoint(checkpoint_every=4)) == 6
+        gradients.append(compiled(loss(adjoint=dvi.ReversibleAdjoint())))
+    for gradient in gradients:
+        assert max_abs_diff(gradient, dense) < 1e-10 * jnp.max(jnp.abs(dense))
 
 
 class _Scaled(dvi.AbstractLagrangian):

@@ -37,7 +37,6 @@ from ._private_api import (
     save_y,
     WrapTerm,
 )
-from ._root_finders import dense_derivative
 from ._solver.base import (
     AbstractVariationalSolver,
     is_symmetric,
@@ -631,11 +630,13 @@ def _takes_inverse_roots(solver, terms, back_state, checkpoint_every) -> bool:
     step's equations are solved twice, and a gradient's program holds one root
     solve less (`benchmarks/reversible_roots.py`). Not with `checkpoint_every`: a
     step from an anchor starts from the forward solve's own state, not from the
-    inverse step's, whose root it would not be; and only where the root's implicit
-    derivative is a dense elimination (`dense_derivative` of the step's Newton
-    method, `step_newton`): up to `NEWTON_DENSE_MAX` unknowns, and a constrained
-    step's equations up to `CONSTRAINED_DENSE_MAX` (the rigid double pendulum's
-    18)."""
+    inverse step's, whose root it would not be; and not where the step's Newton
+    method (`step_newton`) solves by a lineax solver (a constrained step beyond
+    `CONSTRAINED_DENSE_MAX` unknowns, by LAPACK's LU), whose roots optimistix
+    differentiates. The root is differentiated as the step's own would be
+    (`known_root`): by a dense elimination up to `NEWTON_DENSE_MAX` unknowns (a
+    constrained step's up to `CONSTRAINED_DENSE_MAX`: the rigid double pendulum's
+    18), matrix-free beyond (the outer solar system's 18, the bead wire's)."""
     if checkpoint_every is not None or not isinstance(
         solver, AbstractVariationalSolver
     ):
@@ -644,7 +645,8 @@ def _takes_inverse_roots(solver, terms, back_state, checkpoint_every) -> bool:
     if root is None:
         return False
     term, _ = unwrap_term(terms, type(solver).__name__)
-    return dense_derivative(step_newton(term.constraint is not None, root), root)
+    newton = step_newton(term.constraint is not None, root)
+    return isinstance(newton.linear_solver, str)
 
 
 def _anchors(advance, ext0, solver_state, n, max_steps, every):

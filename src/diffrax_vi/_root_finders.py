@@ -803,11 +803,18 @@ def known_root(
     *,
     preconditioner: PyTree | None = None,
     carry: PyTree = None,
+    newton: "Newton | None" = None,
+    tags: frozenset = frozenset(),
 ) -> Solved:
     """`root`, a root of `residual` found elsewhere, as `solve` would return it,
-    differentiated by the implicit function theorem there by a dense elimination
-    (`_implicit_solve`): no iteration in the program. For a system that Newton's
-    method would factorise densely (`dense_derivative`)."""
+    differentiated by the implicit function theorem there (`_implicit_solve`): no
+    iteration in the program. By a dense elimination, or where `newton` (the Newton
+    method that would solve the system) is matrix-free (`dense_derivative`), by a
+    Krylov method on the Jacobian's products (`tags`: the Jacobian's), as
+    `_differentiated` takes the root that `newton` finds. Not for a `Newton` given
+    a lineax solver of the user's, whose roots optimistix differentiates."""
+    assert newton is None or isinstance(newton.linear_solver, str)
+    krylov = newton is not None and not dense_derivative(newton, root)
     dtype = tree_dtype(root)
 
     def find(fn, guess, preconditioner, carry):
@@ -819,7 +826,9 @@ def known_root(
             jnp.full((), jnp.nan, dtype),
         )
 
-    return _implicit_solve(find, residual, root, preconditioner, carry)
+    return _implicit_solve(
+        find, residual, root, preconditioner, carry, tags if krylov else None
+    )
 
 
 def solve_with_fallback(

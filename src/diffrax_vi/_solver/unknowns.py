@@ -323,6 +323,8 @@ class KnownRoot(AbstractStepRootFinding):
             self.root,
             preconditioner=equations.inverse_mass,
             carry=carry,
+            newton=step_newton(equations.constrained, self.root),
+            tags=equations.tags,
         )
         return solved, True
 
