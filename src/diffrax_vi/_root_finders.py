@@ -37,13 +37,12 @@ from equinox import AbstractClassVar, AbstractVar
 from jaxtyping import Array, Int, PyTree, Scalar
 
 from ._linear import (
-    columns,
     dense_jacobian,
     dense_lu_solve,
-    holds_product,
     implicit_lu_solve,
     krylov_iterate,
     krylov_solve,
+    linear_matrix,
     pivot_ratio,
     product,
     unpivoted_solve,
@@ -278,26 +277,23 @@ class Newton(AbstractNewtonFamily):
         exact = (state.step > 0) & (rho <= ROUNDOFF_RESIDUAL * eps)
 
         def update():
-            operator = lx.FunctionLinearOperator(
-                lin, jax.eval_shape(lambda: y), tags=tags
-            )
             pivot_ratio = state.pivot_ratio
             matrix = None
             if not isinstance(self.linear_solver, str):
+                operator = lx.FunctionLinearOperator(
+                    lin, jax.eval_shape(lambda: y), tags=tags
+                )
                 sol = lx.linear_solve(operator, f, self.linear_solver, throw=False)
                 delta, result = sol.value, promote_result(optx.RESULTS, sol.result)
             elif self.dense(y):
                 flat_f, _ = jax.flatten_util.ravel_pytree(f)
                 flat_y, unravel = jax.flatten_util.ravel_pytree(y)
                 flat_lin = lambda x: jax.flatten_util.ravel_pytree(lin(unravel(x)))[0]
-                if holds_product(flat_lin, flat_y):
-                    matrix = columns(flat_lin, flat_y)
-                else:
-                    matrix = operator.as_matrix()
+                matrix = linear_matrix(flat_lin, flat_y)
                 flat_delta, pivot_ratio = dense_lu_solve(
                     matrix, flat_f, NEWTON_DENSE_MAX
                 )
-                delta = jax.flatten_util.ravel_pytree(y)[1](flat_delta)
+                delta = unravel(flat_delta)
                 result = optx.RESULTS.successful
             else:
                 # Eisenstat-Walker choice 2 (gamma = 0.9, alpha = 2), never asking
