@@ -429,8 +429,8 @@ def test_quadratic_momentum_projection_is_one_linear_solve():
 
 
 class _SignedMasses(dvi.AbstractSeparableLagrangian):
-    """Free motion in R^3 with the constant masses `mass`: an indefinite d2L/dv2
-    where an entry is negative (the start admits it)."""
+    """Free motion with the constant masses `mass`: an indefinite d2L/dv2 where an
+    entry is negative (the start admits it)."""
 
     mass: jax.Array
 
@@ -441,36 +441,43 @@ class _SignedMasses(dvi.AbstractSeparableLagrangian):
 def test_an_indefinite_mass_is_projected_with_pivoting():
     """The momentum projection solves G M^-1 G^T without pivoting only where the
     term knows its constant mass to be positive (`mass_definite`, where it is
-    built). With masses (1, -1, 1) and the linear constraints q0 + q1 = 0, q0 = 0,
-    G M^-1 G^T = [[0, 1], [1, 1]] is regular, with a zero leading minor: partial
-    pivoting solves it, and the projected momentum keeps the hidden constraint,
-    as numpy's solve says. A positive mass known when the term is built keeps the
-    unpivoted solve (no `argmax`, a pivot search, in its program); the same mass
-    traced when the term is built pivots."""
+    built). With masses (1, -1, 1, 1, 1) and the linear constraints q0 + q1 = 0,
+    q0 = 0, q3 = 0, q4 = 0, G M^-1 G^T = diag([[0, 1], [1, 1]], 1, 1) is regular,
+    with a zero leading minor: partial pivoting solves it, and the projected
+    momentum keeps the hidden constraint, as numpy's solve says, whether the mass
+    is known when the term is built or traced. A positive mass known when the term
+    is built keeps the unpivoted solve (no `argmax`, a pivot search, in its
+    program); the same mass traced when the term is built pivots. (Four
+    constraints: a system of two or three is solved in closed form, which needs no
+    pivot.)"""
     from diffrax_vi._constraint import project_momentum
 
-    a = np.array([[1.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+    a = np.zeros((4, 5))
+    a[0, :2] = 1.0
+    a[1, 0] = a[2, 3] = a[3, 4] = 1.0
     constraint = lambda t, q, args: jnp.asarray(a) @ q
-    q, p = jnp.zeros(3), jnp.array([0.3, -0.7, 1.1])
+    q, p = jnp.zeros(5), jnp.array([0.3, -0.7, 1.1, 0.5, -0.2])
+    signed = jnp.array([1.0, -1.0, 1.0, 1.0, 1.0])
 
     def project(mass):
         term = dvi.LagrangianTerm(_SignedMasses(mass), constraint=constraint)
         return term, lambda p_: project_momentum(term, 0.0, q, p_, None)
 
-    term, indefinite = project(jnp.array([1.0, -1.0, 1.0]))
-    assert not term.mass_definite
-    projected = jax.jit(indefinite)(p)
-    assert projected.result == dfx.RESULTS.successful
-    weights = np.array([1.0, -1.0, 1.0])
+    weights = np.asarray(signed)
     mu = np.linalg.solve((a * weights) @ a.T, a @ (weights * np.asarray(p)))
-    np.testing.assert_allclose(projected.p, p - a.T @ mu, rtol=0, atol=1e-15)
-    assert np.max(np.abs(a @ (weights * projected.p))) < 1e-15
+    term, indefinite = project(signed)
+    assert not term.mass_definite
+    traced = jax.jit(lambda m: project(m)[1](p))
+    for projected in (jax.jit(indefinite)(p), traced(signed)):
+        assert projected.result == dfx.RESULTS.successful
+        np.testing.assert_allclose(projected.p, p - a.T @ mu, rtol=0, atol=1e-15)
+        assert np.max(np.abs(a @ (weights * projected.p))) < 1e-15
 
-    term, definite = project(jnp.array([1.0, 2.0, 3.0]))
+    positive = jnp.array([1.0, 2.0, 3.0, 4.0, 5.0])
+    term, definite = project(positive)
     assert term.mass_definite
     assert "argmax" not in str(jax.make_jaxpr(definite)(p))
-    traced = jax.make_jaxpr(lambda m: project(m)[1](p))(jnp.array([1.0, 2.0, 3.0]))
-    assert "argmax" in str(traced)
+    assert "argmax" in str(jax.make_jaxpr(lambda m: project(m)[1](p))(positive))
 
 
 @pytest.mark.parametrize("scale", [1.0, 1e-3], ids=["unit", "milli"])

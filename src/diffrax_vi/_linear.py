@@ -172,10 +172,10 @@ def unpivoted_solve(matrix: Array, b: Array) -> tuple[Array, Scalar]:
 def unrolled_lu_solve(matrix: Array, b: Array) -> tuple[Array, Scalar]:
     """`matrix^-1 b` by `unrolled_lu_factor`, and the ratio of the smallest to the
     largest pivot; for Newton's dense solves (`newton_is_dense`) in place of
-    `lineax.LU`. A 3 x 3 system is solved in closed form (`cofactor_solve3`), in
-    half the time of the elimination."""
-    if matrix.shape == (3, 3):
-        return cofactor_solve3(matrix, b)
+    `lineax.LU`. A 2 x 2 or 3 x 3 system is solved in closed form
+    (`cofactor_solve`), the 3 x 3 in half the time of the elimination."""
+    if matrix.shape in ((2, 2), (3, 3)):
+        return cofactor_solve(matrix, b)
     lu, perm = unrolled_lu_factor(matrix)
     return unrolled_lu_apply(lu, perm, b), pivot_ratio(lu)
 
@@ -258,25 +258,32 @@ def implicit_lu_solve(
     )
 
 
-def cofactor_solve3(matrix: Array, b: Array) -> tuple[Array, Scalar]:
-    r"""`matrix^-1 b` for a 3 x 3 matrix by its cofactors (cross products of its
-    rows: $A^{-1} = \mathrm{cof}(A)^\top/\det A$), and, in place of the pivot
-    ratio, $|\det A'| / \max_i |a'_i|^3$ for $A' = DAD$ in units of the diagonal,
-    $D = |\mathrm{diag}\,A|^{-1/2}$ (a zero entry unscaled): a measure that is at most
-    one and vanishes with $\det A$, below which $A$ is singular to working precision
-    as the pivot ratio says of an elimination. The Jacobians solved here (of
-    momenta in velocities: $d^2L/dv^2$, a step's Newton matrix) scale a row and a
-    column with the units of each coordinate, which $D$ takes out: the same measure
-    in any units (of $A$ itself, a four-bar with one angle in units $10^4$ times
-    smaller read $10^{-17}$ and singular)."""
-    a0, a1, a2 = matrix[0], matrix[1], matrix[2]
-    c0, c1, c2 = jnp.cross(a1, a2), jnp.cross(a2, a0), jnp.cross(a0, a1)
-    det = jnp.sum(a0 * c0)
-    x = (c0 * b[0] + c1 * b[1] + c2 * b[2]) / det
+def cofactor_solve(matrix: Array, b: Array) -> tuple[Array, Scalar]:
+    r"""`matrix^-1 b` for a 2 x 2 or 3 x 3 matrix by its cofactors
+    ($A^{-1} = \mathrm{cof}(A)^\top/\det A$; for 3 x 3, cross products of its rows),
+    and, in place of the pivot ratio, $|\det A'| / \max_i |a'_i|^n$ for $A' = DAD$
+    in units of the diagonal, $D = |\mathrm{diag}\,A|^{-1/2}$ (a zero entry
+    unscaled): a measure that is at most one (Hadamard's inequality) and vanishes
+    with $\det A$, below which $A$ is singular to working precision as the pivot
+    ratio says of an elimination. The Jacobians solved here (of momenta in
+    velocities: $d^2L/dv^2$, a step's Newton matrix) scale a row and a column with
+    the units of each coordinate, which $D$ takes out: the same measure in any units
+    (of $A$ itself, a four-bar with one angle in units $10^4$ times smaller read
+    $10^{-17}$ and singular)."""
+    n = matrix.shape[0]
+    if n == 2:
+        (a00, a01), (a10, a11) = matrix
+        det = a00 * a11 - a01 * a10
+        x = jnp.stack([a11 * b[0] - a01 * b[1], a00 * b[1] - a10 * b[0]]) / det
+    else:
+        a0, a1, a2 = matrix[0], matrix[1], matrix[2]
+        c0, c1, c2 = jnp.cross(a1, a2), jnp.cross(a2, a0), jnp.cross(a0, a1)
+        det = jnp.sum(a0 * c0)
+        x = (c0 * b[0] + c1 * b[1] + c2 * b[2]) / det
     diagonal = jnp.abs(jnp.diagonal(matrix))
     scale = 1 / jnp.where(diagonal > 0, diagonal, 1)  # D^2
     largest = jnp.max(scale * jnp.sum(matrix**2 * scale[None, :], axis=1))
-    return x, _ratio(jnp.abs(det) * jnp.prod(scale), largest**1.5)
+    return x, _ratio(jnp.abs(det) * jnp.prod(scale), largest ** (n / 2))
 
 
 def _magnitude(tree: PyTree) -> Scalar:
