@@ -37,8 +37,8 @@ CONSTRAINED_DENSE_MAX = 128
 
 # A linearized step's symmetric system of at most this many unknowns is eliminated
 # densely, as its other small systems are; beyond, conjugate gradients take it. The
-# elimination's steps take 0.4-0.8x CG's up to 4 unknowns, 1.04-1.07x at 6 and 8
-# (`benchmarks/linearized_cost.py`).
+# elimination's steps take 0.34-0.79x CG's up to 4 unknowns, 1.02x and 1.09x at 6
+# and 8 (`benchmarks/results/linearized_cost_cpu.txt`).
 LINEARIZED_DENSE_MAX = 4
 
 

@@ -153,9 +153,9 @@ class LinearizedVI(AbstractVariationalSolver):
         # whole: an unrolled elimination of the dense matrix for a small system (up
         # to LINEARIZED_DENSE_MAX unknowns where it is symmetric, NEWTON_DENSE_MAX
         # where it is not), else conjugate gradients for a symmetric matrix and
-        # BiCGStab for another. Either is
-        # differentiated as a linear solve, without a host callback or a scatter in
-        # a gradient's loop (`implicit_lu_solve`, `krylov_solve`).
+        # BiCGStab for another. Either is differentiated as a linear solve, without
+        # a host callback or a scatter in a gradient's loop (`implicit_lu_solve`,
+        # `krylov_solve`).
         if self.linear_solver is not None:
             operator = lx.FunctionLinearOperator(matvec, jax.eval_shape(lambda: rhs))
             sol = lx.linear_solve(operator, rhs, self.linear_solver, throw=False)
