@@ -37,6 +37,7 @@ from ._private_api import (
     save_y,
     WrapTerm,
 )
+from ._root_finders import optimistix_differentiates
 from ._solver.base import (
     AbstractVariationalSolver,
     is_symmetric,
@@ -630,13 +631,14 @@ def _takes_inverse_roots(solver, terms, back_state, checkpoint_every) -> bool:
     step's equations are solved twice, and a gradient's program holds one root
     solve less (`benchmarks/reversible_roots.py`). Not with `checkpoint_every`: a
     step from an anchor starts from the forward solve's own state, not from the
-    inverse step's, whose root it would not be; and not where the step's Newton
-    method (`step_newton`) solves by a lineax solver (a constrained step beyond
-    `CONSTRAINED_DENSE_MAX` unknowns, by LAPACK's LU), whose roots optimistix
-    differentiates. The root is differentiated as the step's own would be
-    (`known_root`): by a dense elimination up to `NEWTON_DENSE_MAX` unknowns (a
-    constrained step's up to `CONSTRAINED_DENSE_MAX`: the rigid double pendulum's
-    18), matrix-free beyond (the outer solar system's 18, the bead wire's)."""
+    inverse step's, whose root it would not be; and not where optimistix
+    differentiates the step's roots (`optimistix_differentiates` of its Newton
+    method, `step_newton`: a constrained step beyond `CONSTRAINED_DENSE_MAX`
+    unknowns, which LAPACK's LU solves). The root is differentiated as the step's
+    own would be (`known_root`): by a dense elimination up to `NEWTON_DENSE_MAX`
+    unknowns (a constrained step's up to `CONSTRAINED_DENSE_MAX`: the rigid double
+    pendulum's 18), matrix-free beyond (the outer solar system's 18, the bead
+    wire's)."""
     if checkpoint_every is not None or not isinstance(
         solver, AbstractVariationalSolver
     ):
@@ -645,8 +647,7 @@ def _takes_inverse_roots(solver, terms, back_state, checkpoint_every) -> bool:
     if root is None:
         return False
     term, _ = unwrap_term(terms, type(solver).__name__)
-    newton = step_newton(term.constraint is not None, root)
-    return isinstance(newton.linear_solver, str)
+    return not optimistix_differentiates(step_newton(term.constraint is not None, root))
 
 
 def _anchors(advance, ext0, solver_state, n, max_steps, every):

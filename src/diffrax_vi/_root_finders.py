@@ -774,6 +774,16 @@ def dense_derivative(root_finder: AbstractVIRootFinder, guess: PyTree) -> bool:
     return newton_is_dense(tree_size(guess))
 
 
+def optimistix_differentiates(root_finder: AbstractVIRootFinder) -> bool:
+    """Whether the roots `root_finder` finds are left to optimistix's
+    `ImplicitAdjoint`, one per root find: those of a `Newton` given a lineax solver
+    of the user's. Every other root of this package's root finders is
+    differentiated by `_implicit_solve` (`_differentiated`)."""
+    return isinstance(root_finder, Newton) and not isinstance(
+        root_finder.linear_solver, str
+    )
+
+
 def _differentiated(
     find, residual, guess, preconditioner, carry, root_finder, tags
 ) -> Solved:
@@ -781,16 +791,12 @@ def _differentiated(
     function theorem at the root it returns (`_implicit_solve`): by a dense
     elimination where `root_finder` would factorise densely (`dense_derivative`),
     else matrix-free, as Newton's method solves such a system, by a Krylov method
-    on Jacobian-vector products (`tags`: the Jacobian's). A `Newton` given a lineax
-    solver of the user's keeps optimistix's `ImplicitAdjoint` for each root find."""
-    if dense_derivative(root_finder, guess):
-        return _implicit_solve(find, residual, guess, preconditioner, carry)
-    users_solver = isinstance(root_finder, Newton) and not isinstance(
-        root_finder.linear_solver, str
-    )
-    if users_solver:
+    on Jacobian-vector products (`tags`: the Jacobian's); or by optimistix
+    (`optimistix_differentiates`)."""
+    if optimistix_differentiates(root_finder):
         return find(residual, guess, preconditioner, carry)
-    return _implicit_solve(find, residual, guess, preconditioner, carry, tags)
+    krylov_tags = None if dense_derivative(root_finder, guess) else tags
+    return _implicit_solve(find, residual, guess, preconditioner, carry, krylov_tags)
 
 
 def known_root(
@@ -803,14 +809,13 @@ def known_root(
     tags: frozenset = frozenset(),
 ) -> Solved:
     """`root`, a root of `residual` found elsewhere, as `solve` would return it,
-    differentiated by the implicit function theorem there (`_implicit_solve`): no
-    iteration in the program. By a dense elimination, or where `newton` (the Newton
-    method that would solve the system) is matrix-free (`dense_derivative`), by a
-    Krylov method on the Jacobian's products (`tags`: the Jacobian's), as
-    `_differentiated` takes the root that `newton` finds. Not for a `Newton` given
-    a lineax solver of the user's, whose roots optimistix differentiates."""
-    assert newton is None or isinstance(newton.linear_solver, str)
-    krylov = newton is not None and not dense_derivative(newton, root)
+    differentiated by the implicit function theorem there: no iteration in the
+    program. As `_differentiated` takes the root that `newton` (the Newton method
+    that would solve the system; `tags`: its Jacobian's) finds, densely or
+    matrix-free; by a dense elimination without `newton`. Not for a root that
+    optimistix would differentiate (`optimistix_differentiates`): `find` here
+    solves nothing, so its derivative would be lost."""
+    assert newton is None or not optimistix_differentiates(newton)
     dtype = tree_dtype(root)
 
     def find(fn, guess, preconditioner, carry):
@@ -822,9 +827,9 @@ def known_root(
             jnp.full((), jnp.nan, dtype),
         )
 
-    return _implicit_solve(
-        find, residual, root, preconditioner, carry, tags if krylov else None
-    )
+    if newton is None:
+        return _implicit_solve(find, residual, root, preconditioner, carry)
+    return _differentiated(find, residual, root, preconditioner, carry, newton, tags)
 
 
 def solve_with_fallback(
