@@ -557,6 +557,38 @@ def test_rolled_elimination_is_the_unrolled_one():
     assert ratio < 1e-12
 
 
+@pytest.mark.parametrize("n", [2, 3])
+def test_closed_form_solves_in_any_units(n):
+    """`cofactor_solve`, Newton's and the Legendre map's 2 x 2 and 3 x 3 solves:
+    the solution is NumPy's, also for a matrix whose first pivot is zero (which an
+    elimination without pivoting could not take), in units 1e12 apart too (`C A C`,
+    the units of a step's coordinates); the singular measure is at most one, the
+    same in both units where the diagonal, which it takes the units from, has no
+    zero, and below the singular threshold for a singular matrix in either."""
+    from diffrax_vi._linear import cofactor_solve
+    from diffrax_vi._tolerance import singular_threshold
+
+    rng = np.random.default_rng(n)
+    b = rng.normal(size=n)
+    c = np.where(np.arange(n) % 2 == 0, 1e-6, 1e6)
+    solve = jax.jit(cofactor_solve)
+    zero_pivot = np.roll(np.eye(n), 1, axis=0) + 0.1 * rng.normal(size=(n, n))
+    zero_pivot[0, 0] = 0.0
+    for a in (rng.normal(size=(n, n)), zero_pivot):
+        x, measure = solve(a, b)
+        np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=1e-10)
+        assert 0 < measure <= 1
+        x, scaled = solve(c[:, None] * a * c[None, :], c * b)
+        np.testing.assert_allclose(c * x, np.linalg.solve(a, b), rtol=1e-10)
+        if np.all(np.diagonal(a) != 0):  # The diagonal carries the units.
+            np.testing.assert_allclose(scaled, measure, rtol=1e-10)
+    singular = rng.normal(size=(n, n))
+    singular[-1] = singular[0]
+    for units in (np.ones(n), c):
+        _, measure = solve(units[:, None] * singular * units[None, :], b)
+        assert measure <= singular_threshold(n, jnp.float64), (units, measure)
+
+
 def test_unpivoted_elimination_of_a_definite_matrix_in_any_units():
     """`unpivoted_solve`: a definite, non-symmetric 6 x 6 matrix (the fixed-point
     iteration's Schur complement G(q1) M^-1 G(q0)^T) and a symmetric positive
