@@ -30,7 +30,7 @@ from .constrained import constrained_step, init_constrained
 from .implicit import IMPLICIT_ARGS_DOC
 from .rattle import rattle_init, rattle_step, RattleState
 from .rule import rule_increments, rule_residual, rule_step, rule_work
-from .stormer_verlet import kick_drift_kick, poisoned_force
+from .stormer_verlet import kick_drift_kick
 from .unknowns import (
     init_unknowns,
     inverse_root,
@@ -139,10 +139,15 @@ class TrapezoidalVI(
     def method_init(self, step: StepInputs) -> PyTree:
         lagrangian = step.term.lagrangian
         if _explicit(step):
-            y0 = (step.q0, step.p0)
-            force = poisoned_force(_force(step, step.t0, step.q0), y0)
+            # The force as it is, even at a NaN or inf start: the engine checks both
+            # halves of the new state, which carry it (`q0 + dq`, `p0 + dp`).
+            # Poisoned by a check of the start (`poisoned_force`, which
+            # StormerVerlet needs: it checks the momentum alone), Kepler's start
+            # compiled to three more kernels outside the loop.
             mass = broadcast_mass(lagrangian.mass, step.p0)
-            return ExplicitState(force, mass_regular(mass, step.p0))
+            return ExplicitState(
+                _force(step, step.t0, step.q0), mass_regular(mass, step.p0)
+            )
         if _rattle(step):
             return rattle_init(step, lambda t, q: _force(step, t, q))
         if step.term.constraint is not None:
@@ -214,9 +219,7 @@ class TrapezoidalVI(
     ) -> MethodStep:
         # After a jump the cached force belongs to the state before the jump.
         force0 = after_jump(
-            made_jump,
-            lambda: poisoned_force(_force(step, step.t0, step.q0), (step.q0, step.p0)),
-            state.force,
+            made_jump, lambda: _force(step, step.t0, step.q0), state.force
         )
         h = step.h
         mass = broadcast_mass(step.term.lagrangian.mass, step.p0)

@@ -77,30 +77,37 @@ def check_start(step: StepInputs) -> Start:
         # A declared constant diagonal mass (separable, rigid bodies): its entries
         # are the eigenvalues. No eigensolver, whose LAPACK call is the only one
         # in a rigid body's program (and the first in a process imports SciPy's
-        # linalg to lower it: 0.12 s of the free body's first call).
-        v0, result = inverse_legendre(lagrangian, t, (q, p), args, None, True)
+        # linalg to lower it: 0.12 s of the free body's first call). Nor a check
+        # of v0 = p0 / m: it is finite where p0 is (but for overflow), which the
+        # first step's check of its start reports (`start_result`, and
+        # `step_result` beyond it). XLA folds the check of a constant mass, but
+        # compiled those of v0 as kernels of their own outside the loop: three on
+        # Kepler and on the free body, 0.03 s of each one's MidpointVI compile.
         regular = mass_regular(mass, p)
+        v0 = jtu.tree_map(lambda m, pi: jnp.where(regular, pi / m, jnp.nan), mass, p)
+        result = dfx.RESULTS.where(
+            regular, dfx.RESULTS.successful, dfx.RESULTS.singular
+        )
         positive = jnp.all(jnp.stack([jnp.all(m > 0) for m in jtu.tree_leaves(mass)]))
+        return Start(v0, result, positive)
+    if velocity_is_explicit(lagrangian, p):
+        # Marked quadratic: the velocity and the extremes from one matrix.
+        v0, result, extremes = explicit_start(lagrangian, t, (q, p), args)
     else:
-        if velocity_is_explicit(lagrangian, p):
-            # Marked quadratic: the velocity and the extremes from one matrix.
-            v0, result, extremes = explicit_start(lagrangian, t, (q, p), args)
-        else:
-            # The velocity alone: Hamilton's equations would also trace the force
-            # (and a constraint's index-reduced forces), which the start does not
-            # need.
-            v0, result = inverse_legendre(lagrangian, t, (q, p), args, None, True)
-            flat_v, unravel = jax.flatten_util.ravel_pytree(v0)
+        # The velocity alone: Hamilton's equations would also trace the force (and
+        # a constraint's index-reduced forces), which the start does not need.
+        v0, result = inverse_legendre(lagrangian, t, (q, p), args, None, True)
+        flat_v, unravel = jax.flatten_util.ravel_pytree(v0)
 
-            def hessian_vector(u):
-                grad = lambda w: jax.flatten_util.ravel_pytree(
-                    momentum(lagrangian, t, q, unravel(w), args)
-                )[0]
-                return jax.jvp(grad, (flat_v,), (u,))[1]
+        def hessian_vector(u):
+            grad = lambda w: jax.flatten_util.ravel_pytree(
+                momentum(lagrangian, t, q, unravel(w), args)
+            )[0]
+            return jax.jvp(grad, (flat_v,), (u,))[1]
 
-            extremes = symmetric_extremes(hessian_vector, n, dtype)
-        regular = invertible(extremes, n, dtype)
-        positive = extremes[0] > 0
+        extremes = symmetric_extremes(hessian_vector, n, dtype)
+    regular = invertible(extremes, n, dtype)
+    positive = extremes[0] > 0
     ok = result == dfx.RESULTS.successful
     result = dfx.RESULTS.where(
         ok & ~regular & all_finite(v0), dfx.RESULTS.singular, result
