@@ -109,7 +109,7 @@ def test_no_loop_is_broken_into_kernels(scene, solver):
 
 def _kernels_outside_loops(hlo: str) -> int:
     """The fused kernels of a program's entry computation, outside every loop: XLA
-    on CPU compiles each on its own (about 12 ms each on a 2-core machine), where a
+    on CPU compiles each on its own (about 10 ms each on a 2-core machine), where a
     loop is compiled whole as one function."""
     entry = hlo[hlo.index("ENTRY") :]
     return entry[: entry.index("\n}")].count(" fusion(")
