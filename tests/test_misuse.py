@@ -141,6 +141,28 @@ def test_a_nan_constraint_is_named():
         dfx.diffeqsolve(CIRCLE, dvi.TrapezoidalVI(), 0.0, 1.0, 0.1, y0, args=jnp.nan)
 
 
+def test_a_non_finite_start_of_rattle_is_nonfinite():
+    """A separable Lagrangian with a constraint steps by RATTLE (`TrapezoidalVI`),
+    whose solve for the multipliers diverges from a NaN or inf start: the step
+    reports `nonfinite`, the cause, not a diverged solve (which says to take a
+    smaller step); the finite start is a success."""
+    scene = dvi.scenes.cartesian_pendulum()
+    term = scene.term()
+    q0, p0 = scene.y0
+    for y0 in (
+        (q0.at[0].set(jnp.nan), p0),
+        (q0, p0.at[0].set(jnp.inf)),
+        (q0.at[1].set(-jnp.inf), p0),
+        scene.y0,
+    ):
+        sol = dfx.diffeqsolve(
+            term, dvi.TrapezoidalVI(), 0.0, 1.0, 0.1, y0, args=scene.args, throw=False
+        )
+        finite = bool(jnp.isfinite(y0[0]).all() & jnp.isfinite(y0[1]).all())
+        expected = dfx.RESULTS.successful if finite else dfx.RESULTS.nonfinite
+        assert sol.result == expected, y0
+
+
 def test_a_non_finite_state_of_a_constrained_general_lagrangian_is_nonfinite():
     """A Lagrangian not quadratic in v: the momentum projection solves for v and
     the multipliers together, so a NaN start, an inf momentum or a NaN parameter

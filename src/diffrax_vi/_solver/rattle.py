@@ -42,16 +42,17 @@ from .._constraint import (
     project_constant_mass,
 )
 from .._lagrangian import broadcast_mass, mass_regular
+from .._misc import all_finite
 from .._root_finders import known_root, solve
 from .base import after_jump, MethodStep, StepInputs
-from .stormer_verlet import poisoned_force
 from .unknowns import KnownRoot
 
 
 class RattleState(eqx.Module):
     """What a step hands to the next: the force and the constraint Jacobian at the
     end of the last step (the next one starts there), whether the mass is invertible
-    (checked once, at the start), the position multipliers of the last two steps
+    and the start finite (checked once, at the start: each step's end is checked
+    by the engine), the position multipliers of the last two steps
     (the next step's guess extrapolates them), and the multipliers of the last
     momentum projection (the step it inverts takes them as its position
     multipliers, `unknowns.inverse_root`)."""
@@ -59,14 +60,18 @@ class RattleState(eqx.Module):
     force: PyTree
     jacobian: Array
     regular: Bool[Array, ""]
+    finite: Bool[Array, ""]
     multipliers: Array
     previous: Array
     projection: Array
 
-    def __init__(self, force, jacobian, regular, multipliers, previous, projection):
+    def __init__(
+        self, force, jacobian, regular, finite, multipliers, previous, projection
+    ):
         self.force = force
         self.jacobian = jacobian
         self.regular = regular
+        self.finite = finite
         # Guesses (`unknowns.Unknowns`): held without a derivative.
         self.multipliers, self.previous, self.projection = lax.stop_gradient(
             (multipliers, previous, projection)
@@ -77,7 +82,6 @@ def rattle_init(step: StepInputs, force) -> RattleState:
     """The state before the first step, after checking that the start lies on the
     constraint manifold. `force(t, q)` is $F$."""
     term = step.term
-    y0 = (step.q0, step.p0)
     mass = broadcast_mass(term.lagrangian.mass, step.p0)
     v0 = jtu.tree_map(lambda p, m: p / m, step.p0, mass)
     jacobian = constraint_jacobian(term.constraint, step.t0, step.q0, step.args)
@@ -91,9 +95,10 @@ def rattle_init(step: StepInputs, force) -> RattleState:
         jnp.zeros(jacobian.shape[:1], step.dtype),
     )
     return RattleState(
-        poisoned_force(force(step.t0, step.q0), y0),
+        force(step.t0, step.q0),
         jacobian,
         mass_regular(mass, step.p0),
+        all_finite((step.q0, step.p0)),
         multipliers,
         multipliers,
         jnp.zeros_like(multipliers),
@@ -126,10 +131,7 @@ def rattle_step(
     # After a jump the cached force and Jacobian belong to the state before it.
     force0, jacobian0 = after_jump(
         made_jump,
-        lambda: (
-            poisoned_force(force(t0, q0), (q0, p0)),
-            constraint_jacobian(g, t0, q0, args),
-        ),
+        lambda: (force(t0, q0), constraint_jacobian(g, t0, q0, args)),
         (state.force, state.jacobian),
     )
     mass = broadcast_mass(term.lagrangian.mass, p0)
@@ -178,8 +180,16 @@ def rattle_step(
         solved.result == dfx.RESULTS.successful, projected.result, solved.result
     )
     result = dfx.RESULTS.where(state.regular, result, dfx.RESULTS.singular)
+    # A NaN or inf start makes the multipliers' solve diverge: it is `nonfinite`.
+    result = dfx.RESULTS.where(state.finite, result, dfx.RESULTS.nonfinite)
     v = jtu.tree_map(lambda x: x / h, dq)
     new = RattleState(
-        force1, jacobian1, state.regular, lam, state.multipliers, projected.multiplier
+        force1,
+        jacobian1,
+        state.regular,
+        state.finite,
+        lam,
+        state.multipliers,
+        projected.multiplier,
     )
     return MethodStep(dq, dp, v, new, result, None if work is None else work(v))
