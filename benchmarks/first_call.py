@@ -55,6 +55,7 @@ import jax
 import jax.numpy as jnp
 jax.config.update("jax_enable_x64", True)
 import diffrax_vi as dvi
+from diffrax_vi.diagnostics._loops import kernels_outside_loops
 from diffrax_vi.study import make_solver
 
 scene_name, solver_name, adjoint = sys.argv[1:]
@@ -94,16 +95,12 @@ lowered = traced.lower()
 compiled_at = time.perf_counter()
 compiled = lowered.compile()
 end = time.perf_counter()
-# The optimised program's size, and the fused kernels outside every loop: XLA on CPU
-# compiles each of those on its own (5 to 25 ms each on this machine), where a loop
-# compiled whole is one function.
+# The optimised program's size, and the fused kernels outside every loop.
 text = compiled.as_text()
-entry = text[text.index("ENTRY"):]
-entry = entry[:entry.index("\\n}")]
 print(json.dumps(dict(trace=lowered_at - start, lower=compiled_at - lowered_at,
                       compile=end - compiled_at,
                       instructions=len(re.findall(r"^\\s+\\S+ = ", text, re.M)),
-                      kernels=entry.count(" fusion("))))
+                      kernels=kernels_outside_loops(text))))
 """
 
 TIMES = ("trace", "lower", "compile")

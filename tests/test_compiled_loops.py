@@ -15,6 +15,7 @@ import pytest
 from diffrax_vi._lagrangian import constant_mass
 from diffrax_vi._linear import dense_jacobian, holds_product
 from diffrax_vi.diagnostics import compiled_loop_breakers, loop_breakers
+from diffrax_vi.diagnostics._loops import kernels_outside_loops
 
 from .helpers import scene as make_scene
 
@@ -107,14 +108,6 @@ def test_no_loop_is_broken_into_kernels(scene, solver):
         assert "lapack" not in text
 
 
-def _kernels_outside_loops(hlo: str) -> int:
-    """The fused kernels of a program's entry computation, outside every loop: XLA
-    on CPU compiles each on its own (about 10 ms each on a 2-core machine), where a
-    loop is compiled whole as one function."""
-    entry = hlo[hlo.index("ENTRY") :]
-    return entry[: entry.index("\n}")].count(" fusion(")
-
-
 @pytest.mark.parametrize(
     "scene,solver,reference",
     [("kepler", "MidpointVI", "Tsit5"), ("free_rigid_body", "MidpointVI", "LGVI")],
@@ -128,8 +121,8 @@ def test_the_start_of_a_constant_mass_compiles_no_kernels_of_its_own(
     (0.03 s of its 0.36 s compile). Outside its loops the solve then holds no more
     kernels than Tsit5's of the same term, or, on a group, than LGVI's (whose start
     checks the attitude as MidpointVI's does)."""
-    ours = _kernels_outside_loops(_compiled(scene, solver))
-    assert ours <= _kernels_outside_loops(_compiled(scene, reference))
+    ours = kernels_outside_loops(_compiled(scene, solver))
+    assert ours <= kernels_outside_loops(_compiled(scene, reference))
 
 
 ADJOINTS = {
