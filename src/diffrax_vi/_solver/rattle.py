@@ -31,7 +31,7 @@ import jax.lax as lax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import optimistix as optx
-from jaxtyping import Array, Bool, PyTree
+from jaxtyping import Array, PyTree
 
 from .._constraint import (
     check_start as check_constraint_start,
@@ -50,28 +50,25 @@ from .unknowns import KnownRoot
 
 class RattleState(eqx.Module):
     """What a step hands to the next: the force and the constraint Jacobian at the
-    end of the last step (the next one starts there), whether the mass is invertible
-    and the start finite (checked once, at the start: each step's end is checked
-    by the engine), the position multipliers of the last two steps
+    end of the last step (the next one starts there), how the start ended
+    (`RESULTS.nonfinite` for a NaN or inf state, `singular` for a mass that is not
+    invertible; checked once, at the start: each step's end is checked by the
+    engine), the position multipliers of the last two steps
     (the next step's guess extrapolates them), and the multipliers of the last
     momentum projection (the step it inverts takes them as its position
     multipliers, `unknowns.inverse_root`)."""
 
     force: PyTree
     jacobian: Array
-    regular: Bool[Array, ""]
-    finite: Bool[Array, ""]
+    start: dfx.RESULTS
     multipliers: Array
     previous: Array
     projection: Array
 
-    def __init__(
-        self, force, jacobian, regular, finite, multipliers, previous, projection
-    ):
+    def __init__(self, force, jacobian, start, multipliers, previous, projection):
         self.force = force
         self.jacobian = jacobian
-        self.regular = regular
-        self.finite = finite
+        self.start = start
         # Guesses (`unknowns.Unknowns`): held without a derivative.
         self.multipliers, self.previous, self.projection = lax.stop_gradient(
             (multipliers, previous, projection)
@@ -94,11 +91,16 @@ def rattle_init(step: StepInputs, force) -> RattleState:
         step.args,
         jnp.zeros(jacobian.shape[:1], step.dtype),
     )
+    start = dfx.RESULTS.where(
+        mass_regular(mass, step.p0), dfx.RESULTS.successful, dfx.RESULTS.singular
+    )
+    start = dfx.RESULTS.where(
+        all_finite((step.q0, step.p0)), start, dfx.RESULTS.nonfinite
+    )
     return RattleState(
         force(step.t0, step.q0),
         jacobian,
-        mass_regular(mass, step.p0),
-        all_finite((step.q0, step.p0)),
+        start,
         multipliers,
         multipliers,
         jnp.zeros_like(multipliers),
@@ -179,15 +181,16 @@ def rattle_step(
     result = dfx.RESULTS.where(
         solved.result == dfx.RESULTS.successful, projected.result, solved.result
     )
-    result = dfx.RESULTS.where(state.regular, result, dfx.RESULTS.singular)
-    # A NaN or inf start makes the multipliers' solve diverge: it is `nonfinite`.
-    result = dfx.RESULTS.where(state.finite, result, dfx.RESULTS.nonfinite)
+    # A NaN or inf start makes the multipliers' solve diverge: the start's result
+    # says why.
+    result = dfx.RESULTS.where(
+        state.start == dfx.RESULTS.successful, result, state.start
+    )
     v = jtu.tree_map(lambda x: x / h, dq)
     new = RattleState(
         force1,
         jacobian1,
-        state.regular,
-        state.finite,
+        state.start,
         lam,
         state.multipliers,
         projected.multiplier,
