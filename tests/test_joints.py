@@ -148,8 +148,14 @@ def test_runge_kutta_on_the_joined_bodies_follows_the_index_reduced_equations():
 def test_rigid_double_pendulum_keeps_its_joints_group_and_momentum():
     """10^5 steps of TrapezoidalVI at h = period/100: the joints and SO(3) kept to
     round-off, the vertical angular momentum about the pivot (a symmetry) kept by
-    the discrete Noether theorem, and the energy error bounded without drift (its
-    last tenth within 2x its first). The states every 500 steps, from
+    the discrete Noether theorem, and the energy error bounded without drift: its
+    mean over the second half within 1.5x its mean over the first, where a drift
+    growing linearly in time makes it 3x. The mechanism is chaotic, and the size of
+    the error depends on the region the motion visits: a tenth of the run can sit
+    in a quiet one (a round-off change in the step's program moved the first
+    tenth's mean to 7e-5 against 1.5-2.4e-4 in each later tenth, and its largest
+    error to a third of the last tenth's), while 10^6 steps hold the largest error
+    of each tenth between 8e-4 and 1.2e-3. The states every 500 steps, from
     `solve_fixed_steps`: `diffeqsolve`'s steps (tests/test_lie.py), without the
     interpolation that `SaveAt(ts)` compiles (12-14 s against 6.5 s saving t1)."""
     scene = dvi.scenes.rigid_double_pendulum()
@@ -169,8 +175,9 @@ def test_rigid_double_pendulum_keeps_its_joints_group_and_momentum():
     momentum = values["vertical_momentum"]
     assert jnp.max(jnp.abs(momentum - momentum[0])) < 1e-11
     error = jnp.abs(values["energy"] - values["energy"][0])
-    first, last = jnp.max(error[1:21]), jnp.max(error[-20:])
-    assert 0 < last < 2 * first, (first, last)
+    half = len(error) // 2
+    first, last = jnp.mean(error[1:half]), jnp.mean(error[half:])
+    assert 0 < last < 1.5 * first, (first, last)
 
 
 def test_bodies_momentum_projection_is_one_linear_solve():
