@@ -142,5 +142,11 @@ def constrained_step(
     # (`unknowns.inverse_root`).
     state = dataclasses.replace(out.state, projection=projected.multiplier)
     return MethodStep(
-        out.dq, tree_add(out.dp, projected.impulse), out.v, state, result, out.work
+        out.dq,
+        tree_add(out.dp, projected.impulse),
+        out.v,
+        state,
+        result,
+        out.work,
+        q1=q1,
     )
