@@ -1,5 +1,6 @@
 import gc
 import os
+import shutil
 import tempfile
 
 import jax
@@ -11,8 +12,14 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 # The command line keeps compiled programs in $XDG_CACHE_HOME: the suite's runs of
-# it write into a folder of their own, not the user's cache.
-os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="diffrax-vi-test-cache-")
+# it write into a folder of their own, not the user's cache, removed when the
+# process's tests end (`pytest_unconfigure`, in each worker).
+_CACHE = tempfile.mkdtemp(prefix="diffrax-vi-test-cache-")
+os.environ["XDG_CACHE_HOME"] = _CACHE
+
+
+def pytest_unconfigure(config):
+    shutil.rmtree(_CACHE, ignore_errors=True)
 
 
 @pytest.fixture(autouse=True)
