@@ -443,6 +443,26 @@ def test_false_quadratic_marker_is_caught():
     assert _solve(honest, dvi.MidpointVI(), y0).result == dfx.RESULTS.successful
 
 
+def test_a_false_quadratic_marker_in_a_loop_is_nan_not_a_callback():
+    """Where a Lagrangian marked quadratic in `v` is not, `diffrax_vi.energy` raises
+    (a host callback); a scene's energy, which a study traces into every step of a
+    solve that checked its own start, is NaN there (the study then reports the run
+    non-finite) and its program holds no callback, which would break the loop into
+    kernels. Where the marker holds (`p = 0` here) both give the energy."""
+    zero = jnp.array(0.0)
+    scene = dvi.scenes.Scene("false", FalselyQuadratic(), (zero, zero), 1.0)
+    energy = jax.jit(scene.energy)
+    held, broken = (jnp.array(0.3), jnp.array(0.0)), (jnp.array(0.3), jnp.array(0.5))
+    assert float(energy(0.0, held, None)) == pytest.approx(1 + 0.5 * 0.3**2)
+    assert float(dvi.energy(FalselyQuadratic(), 0.0, held)) == pytest.approx(1.045)
+    assert np.isnan(float(energy(0.0, broken, None)))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="not quadratic"):
+        dvi.energy(FalselyQuadratic(), 0.0, broken)
+    assert "callback" not in str(jax.make_jaxpr(scene.energy)(0.0, broken, None))
+    raising = jax.make_jaxpr(dvi.energy)(FalselyQuadratic(), 0.0, broken)
+    assert "callback" in str(raising)
+
+
 def test_bad_states_are_value_errors():
     lagrangian = dvi.SeparableLagrangian(lambda t, q, args: 0.5 * q**2)
     half = lambda x: jnp.asarray(x, "float16")

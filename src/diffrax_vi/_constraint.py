@@ -231,7 +231,7 @@ def project_momentum(
 
     # Inside a step the solve's start has checked the quadratic marker.
     def velocity(p):
-        return inverse_legendre(term.lagrangian, t, (q, p), args, None, False)
+        return inverse_legendre(term.lagrangian, t, (q, p), args, None, "trust")
 
     if newton_is_dense(m) and constant_mass(term.lagrangian, p) is not None:
         return project_constant_mass(

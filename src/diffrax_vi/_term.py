@@ -227,7 +227,7 @@ class LagrangianTerm(dfx.AbstractTerm):
         space = self.lagrangian.space
         q, p = split_state(y, "y", space)
         v, result = inverse_legendre(
-            self.lagrangian, t, y, args, v_guess, check_promise=True
+            self.lagrangian, t, y, args, v_guess, promise="raise"
         )
         dp = generalised_force(self.lagrangian, t, q, v, args)
         if not is_euclidean(space):

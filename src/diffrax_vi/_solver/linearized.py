@@ -241,7 +241,12 @@ class LinearizedVI(AbstractVariationalSolver):
         from compiling the loop whole. A past that cannot be built is still
         poisoned (`_past`)."""
         v, result = inverse_legendre(
-            step.term.lagrangian, step.t0, (step.q0, step.p0), step.args, None, False
+            step.term.lagrangian,
+            step.t0,
+            (step.q0, step.p0),
+            step.args,
+            None,
+            "trust",
         )
         return self._past(step, v, result == dfx.RESULTS.successful)
 

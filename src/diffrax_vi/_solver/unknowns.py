@@ -96,7 +96,7 @@ def check_start(step: StepInputs) -> Start:
     else:
         # The velocity alone: Hamilton's equations would also trace the force (and
         # a constraint's index-reduced forces), which the start does not need.
-        v0, result = inverse_legendre(lagrangian, t, (q, p), args, None, True)
+        v0, result = inverse_legendre(lagrangian, t, (q, p), args, None, "raise")
         flat_v, unravel = jax.flatten_util.ravel_pytree(v0)
 
         def hessian_vector(u):
@@ -401,7 +401,7 @@ def resume_unknowns(
         (step.q0, step.p0),
         step.args,
         None,
-        check_promise=False,
+        promise="trust",
     )
     guess = stage_guess(v0)
     projection = state.projection

@@ -76,7 +76,7 @@ def _tangent_basis(term: LagrangianTerm, y0: PyTree, args: Args) -> Array:
     def constraints(x):
         q, p = unravel(x)
         v, _ = inverse_legendre(
-            term.lagrangian, 0.0, (q, p), args, None, check_promise=True
+            term.lagrangian, 0.0, (q, p), args, None, promise="raise"
         )
         g = lambda q_: constraint_values(term.constraint, 0.0, q_, args)
         hidden = jax.jvp(g, (q,), (v,))[1]

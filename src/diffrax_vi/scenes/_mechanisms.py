@@ -192,9 +192,7 @@ class ConstraintResiduals(eqx.Module):
 
     def hidden(self, t, y, args):
         q, p = y
-        v, _ = inverse_legendre(
-            self.lagrangian, t, (q, p), args, None, check_promise=True
-        )
+        v, _ = inverse_legendre(self.lagrangian, t, (q, p), args, None, promise="nan")
         return jax.jvp(lambda x: self.constraint(t, x, args), (q,), (v,))[1]
 
 

@@ -15,6 +15,10 @@ from .._space import is_euclidean, retract
 from .._term import LagrangianTerm
 
 
+def _energy_in_loop(lagrangian, t, y, args):
+    return energy_value(lagrangian, t, y, args, promise="nan")
+
+
 class Scene(eqx.Module):
     """A ready system: a Lagrangian, a default initial state, its time scale, the
     quantities its flow conserves and, where one is known, its exact solution.
@@ -66,10 +70,13 @@ class Scene(eqx.Module):
     def energy(self) -> Callable:
         r"""The energy $E = p\cdot v - L$ as `fn(t, y, args) -> array`
         ([`diffrax_vi.energy`][]), traced into the caller's program: a study tracks
-        it in every step. It carries the Lagrangian alone, not the scene (whose
-        exact solution is a new function for each scene built), so two equal scenes
-        give a study equal programs to compile, which it then shares."""
-        return jtu.Partial(energy_value, self.lagrangian)
+        it in every step. NaN where the Legendre map cannot be inverted, and where
+        a Lagrangian marked quadratic in `v` is not (which `diffrax_vi.energy`
+        raises, by a host callback that would break a time-stepping loop into
+        kernels). It carries the Lagrangian alone, not the scene (whose exact
+        solution is a new function for each scene built), so two equal scenes give
+        a study equal programs to compile, which it then shares."""
+        return jtu.Partial(_energy_in_loop, self.lagrangian)
 
     def conserved(self) -> dict[str, Callable]:
         """Every conserved quantity, energy first, as `fn(t, y, args) -> array`. With

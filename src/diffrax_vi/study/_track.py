@@ -52,7 +52,7 @@ class EnergyBalance(eqx.Module):
             t = t0 + s * (t1 - t0)
             q, p = interpolation.evaluate(t)
             v, _ = inverse_legendre(
-                self.term.lagrangian, t, (q, p), args, None, check_promise=True
+                self.term.lagrangian, t, (q, p), args, None, promise="nan"
             )
             return power(applied_force(self.term.force, t, q, v, args), v)
 
