@@ -109,6 +109,33 @@ def test_no_loop_is_broken_into_kernels(scene, solver):
         assert "lapack" not in text
 
 
+def test_a_solve_that_interpolates_compiles_its_loop_whole():
+    """Saving at times interpolates each step's dense output: Hamilton's equations at
+    both of its ends. For the double pendulum's Lagrangian, marked quadratic in
+    `v`, they check that marker in `LagrangianTerm.vf` alone (a Runge-Kutta
+    solve's vector field, which must raise: `test_false_quadratic_marker_is_caught`),
+    not in a variational step's dense output, where the solve's start has checked
+    it: with that check's host callback the loop was broken into kernels (the
+    `MidpointVI` step 5.8 against 0.9 us)."""
+    scene = make_scene("double_pendulum")
+    h = scene.period / 50
+
+    def run(y0):
+        return dfx.diffeqsolve(
+            scene.term(),
+            dvi.MidpointVI(),
+            0.0,
+            8 * h,
+            h,
+            y0,
+            saveat=dfx.SaveAt(ts=np.linspace(0.0, 8 * h, 5)),
+            max_steps=8,
+        ).ys
+
+    text = jax.jit(run).lower(scene.y0).compile().as_text()
+    assert loop_breakers(text) == []
+
+
 def test_a_studys_tracked_solve_compiles_its_loop_whole():
     """A study evaluates every conserved quantity at every step of its tracked
     solve. The double pendulum's energy inverts the Legendre map of a Lagrangian

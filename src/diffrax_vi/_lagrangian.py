@@ -768,15 +768,34 @@ def _explicit_velocity(
     # solve is wrong, and the residual at its answer says so.
     v = unravel(x)
     if promise != "trust":
-        broken = regular & (
-            scaled_norm(*residual(v)) > newton_tolerance(flat_zeros.dtype)
-        )
+        broken = regular & _breaks(residual, v, flat_zeros.dtype)
         if promise == "raise":
             v = eqx.error_if(v, broken, NOT_QUADRATIC)
         else:
             v = jtu.tree_map(lambda x: jnp.where(broken, jnp.nan, x), v)
     result = dfx.RESULTS.where(regular, dfx.RESULTS.successful, dfx.RESULTS.singular)
     return v, result_or_nonfinite(v, p, result), extra
+
+
+def _breaks(residual, v: V, dtype) -> Bool[Array, ""]:
+    # The marker's promise broken: dL/dv(v) != p at the one solve's velocity.
+    return scaled_norm(*residual(v)) > newton_tolerance(dtype)
+
+
+def broken_promise(
+    lagrangian: AbstractLagrangian, t: RealScalarLike, y: tuple[Q, P], args: Args, v: V
+) -> Bool[ArrayLike, ""]:
+    """Where a Lagrangian marked quadratic in `v`, whose velocity
+    `inverse_legendre` takes from one linear solve, is not: `v` (that solve's,
+    taken with `promise="trust"`) has `dL/dv(v) != p` (`NOT_QUADRATIC`). `False`
+    where no such solve is made (a constant mass, a general Lagrangian)."""
+    q, p = split_state(y, "y", lagrangian.space)
+    if constant_mass(lagrangian, p) is not None or not velocity_is_explicit(
+        lagrangian, p
+    ):
+        return False
+    residual = legendre_residual(lagrangian, t, q, p, args)
+    return _breaks(residual, v, state_dtype(p))
 
 
 def explicit_start(

@@ -15,10 +15,12 @@ from ._lagrangian import (
     AbstractSeparableLagrangian,
     as_lagrangian,
     broadcast_mass,
+    broken_promise,
     declared_mass,
     generalised_force,
     inverse_legendre,
     mass_regular,
+    NOT_QUADRATIC,
 )
 from ._misc import all_finite, at_trace_time, error_if, split_state, traced
 from ._space import coadjoint, is_euclidean, velocity as space_velocity
@@ -43,6 +45,7 @@ VF_ERRORS = (
     "rtol, or use MidpointVI or TrapezoidalVI, which keep g = 0 at every step. If "
     "the start is singular, the constraints are redundant or q0 is a singular "
     "configuration.",
+    NOT_QUADRATIC,
 )
 
 
@@ -226,8 +229,11 @@ class LagrangianTerm(dfx.AbstractTerm):
     def _hamilton(self, t, y, args, v_guess):
         space = self.lagrangian.space
         q, p = split_state(y, "y", space)
+        # The quadratic marker is checked by `vf`, which must raise, not here: a
+        # step's dense output (on the same trace) is inside its loop, where the
+        # start has checked it and a callback would break the loop into kernels.
         v, result = inverse_legendre(
-            self.lagrangian, t, y, args, v_guess, promise="raise"
+            self.lagrangian, t, y, args, v_guess, promise="trust"
         )
         dp = generalised_force(self.lagrangian, t, q, v, args)
         if not is_euclidean(space):
@@ -250,12 +256,18 @@ class LagrangianTerm(dfx.AbstractTerm):
         if self.mass_checked:
             return f
         # A vector field cannot return a RESULTS: each cause raises its own message.
+        ok = result == dfx.RESULTS.successful
+        broken = ok & broken_promise(self.lagrangian, t, y, args, v)
         index = jnp.where(
-            result == dfx.RESULTS.singular,
-            0 if self.constraint is None else 3,
-            jnp.where(result == dfx.RESULTS.breakdown, 1, 2),
+            broken,
+            4,
+            jnp.where(
+                result == dfx.RESULTS.singular,
+                0 if self.constraint is None else 3,
+                jnp.where(result == dfx.RESULTS.breakdown, 1, 2),
+            ),
         )
-        failed = (result != dfx.RESULTS.successful) | ~all_finite(f)
+        failed = ~ok | broken | ~all_finite(f)
         return eqx.branched_error_if(f, failed & all_finite(y), index, VF_ERRORS)
 
     def contr(self, t0: RealScalarLike, t1: RealScalarLike, **kwargs) -> RealScalarLike:
