@@ -490,8 +490,8 @@ NOT_QUADRATIC = (
 # velocity, which the caller reports, for what is traced into a time-stepping loop
 # whose solve checked its own start (a study's energy at every step: with a callback
 # there XLA no longer compiles the loop whole, and the double pendulum's tracked
-# solve took 1.71 against 0.15 s); "trust", no check, for the solver's own use
-# after its start has checked it.
+# `TrapezoidalVI` solve took 0.97-1.19 against 0.18-0.19 s); "trust", no check,
+# inside a solve's steps and their dense output, after its start has checked it.
 Promise = Literal["raise", "nan", "trust"]
 
 
