@@ -677,7 +677,7 @@ def inverse_legendre(
     y: tuple[Q, P],
     args: Args,
     v_guess: V | None,
-    promise: "Promise",
+    promise: Promise,
 ) -> tuple[V, dfx.RESULTS]:
     """[`diffrax_vi.velocity`][], checking as `promise` says that a Lagrangian
     marked quadratic in `v` is (`Promise`)."""
@@ -749,7 +749,7 @@ def _explicit_velocity(
     q: Q,
     p: P,
     args: Args,
-    promise: "Promise",
+    promise: Promise,
     linear_solve: Callable[[Array, Array], tuple[Array, Bool[Array, ""], PyTree]],
 ) -> tuple[V, dfx.RESULTS, PyTree]:
     """The velocity of a Lagrangian marked quadratic in `v` (`velocity_is_explicit`,
@@ -871,7 +871,7 @@ def energy_value(
     t: RealScalarLike,
     y: tuple[Q, P],
     args: Args,
-    promise: "Promise" = "raise",
+    promise: Promise = "raise",
 ) -> Scalar:
     """[`diffrax_vi.energy`][], traced into the caller's program (`promise` as for
     `inverse_legendre`)."""
