@@ -5,6 +5,8 @@ folder keeps within its bound the programs used last."""
 
 import json
 import os
+import subprocess
+import sys
 import time
 
 import jax
@@ -96,6 +98,31 @@ def test_a_program_holding_a_host_callback_is_traced_every_time(tmp_path):
         outs = [_programs.compiled("f", make(), None, x)(x) for _ in range(2)]
     assert len(calls) == 2 and not any(tmp_path.iterdir())
     assert all(np.allclose(out, np.cos(1.0) + 1) for out in outs)
+
+
+def test_a_kept_eigensolver_runs_in_a_process_that_lowered_none(tmp_path):
+    """An eigensolver (a start's check of d2L/dv2) is a call into LAPACK, whose
+    kernels jaxlib points at SciPy's LAPACK when it lowers one. A process that
+    loads the kept program has lowered none: it must set them up itself (it
+    crashed, calling a null pointer)."""
+    script = f"""
+import jax, jax.numpy as jnp, numpy as np
+jax.config.update("jax_enable_x64", True)
+from diffrax_vi.study import _programs
+a = jnp.array([[2.0, 1.0], [1.0, 3.0]])
+with _programs.keep_programs({str(tmp_path)!r}, "eigh"):
+    program = _programs.compiled("eigh", lambda _, a: jnp.linalg.eigvalsh(a), None, a)
+print(np.asarray(program(a)).tolist())
+"""
+    runs = [
+        subprocess.run([sys.executable, "-c", script], capture_output=True, text=True)
+        for _ in range(2)  # Kept, then loaded.
+    ]
+    assert [run.returncode for run in runs] == [0, 0], runs[-1].stderr[-2000:]
+    assert len(list(tmp_path.iterdir())) == 1
+    exact = [(5 - np.sqrt(5)) / 2, (5 + np.sqrt(5)) / 2]
+    for run in runs:
+        assert np.allclose(json.loads(run.stdout), exact, rtol=1e-14, atol=0)
 
 
 def test_a_damaged_file_is_replaced(tmp_path):

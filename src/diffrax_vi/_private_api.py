@@ -46,6 +46,10 @@ from jax._src.core import Literal  # A constant operand of a traced equation.
 from jax._src.interpreters.partial_eval import (  # A value being traced into a jaxpr.
     DynamicJaxprTracer,
 )
+
+# Points jaxlib's CPU LAPACK kernels at SciPy's LAPACK, as lowering an eigensolver
+# does: an executable loaded in a process that lowered none would call nothing.
+from jax._src.lax.linalg import initialize_lapack
 from jax._src.xla_bridge import backends_are_initialized  # XLA_FLAGS are read then.
 from jaxtyping import ArrayLike, Bool
 
@@ -55,6 +59,7 @@ __all__ = [
     "assert_term_compatible",
     "backends_are_initialized",
     "clip_to_end",
+    "initialize_lapack",
     "is_subsaveat",
     "known_value",
     "nondiff_solver_controller_state",

@@ -52,7 +52,7 @@ from jax.experimental import serialize_executable
 from jaxtyping import PyTree
 
 from .._misc import holds
-from .._private_api import persistent_cache_min_time
+from .._private_api import initialize_lapack, persistent_cache_min_time
 
 
 # Whose source files the traced programs depend on.
@@ -189,6 +189,11 @@ def _read(path: pathlib.Path) -> Callable | None:
     """The compiled program kept in `path`, loaded; `None` if there is none."""
     try:
         data, in_tree, out_tree = pickle.loads(path.read_bytes())
+        if b"lapack_" in data:
+            # Its LAPACK kernels (an eigensolver at a solve's start) run SciPy's
+            # LAPACK once it is set up, which lowering one does: unset in a process
+            # that lowered none, they would call a null pointer.
+            initialize_lapack()
         program = serialize_executable.deserialize_and_load(data, in_tree, out_tree)
     except Exception:
         # None kept yet; or a file cut short, or written by another version of JAX,
