@@ -32,6 +32,7 @@ Run: `python benchmarks/startup.py [--rounds 3]` (recorded: `results/startup_cpu
 
 import argparse
 import collections
+import json
 import os
 import pathlib
 import subprocess
@@ -95,7 +96,13 @@ def seconds(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=3)
-    rounds = parser.parse_args().rounds
+    parser.add_argument(
+        "--scenes",
+        default="free_rigid_body,four_bar,rigid_double_pendulum",
+        help="scenes whose default study runs cold and warm once each ('' for none)",
+    )
+    options = parser.parse_args()
+    rounds = options.rounds
     cli = str(BIN / "diffrax-vi")
     job = [cli, "drift", "--out"]
     times = collections.defaultdict(list)
@@ -125,6 +132,25 @@ def main() -> None:
                     work,
                     prepared,
                 )
+            )
+    scenes = {}
+    for scene in filter(None, options.scenes.split(",")):
+        with tempfile.TemporaryDirectory() as work:
+            cache = {"XDG_CACHE_HOME": str(pathlib.Path(work) / "cache")}
+            study = [cli, "drift", "--scene", scene, "--out"]
+            cold_ = seconds([*study, "cold"], cache, work)
+            programs = pathlib.Path(cache["XDG_CACHE_HOME"]) / "diffrax-vi" / "programs"
+            kept = len(list(programs.iterdir()))
+            solves = len(
+                json.loads((pathlib.Path(work) / "cold" / "drift.json").read_text())[
+                    "summary"
+                ]
+            )
+            scenes[scene] = (
+                cold_,
+                seconds([*study, "warm"], cache, work),
+                kept,
+                2 * solves,
             )
     from diffrax_vi.study._programs import MAX_BYTES
 
@@ -173,6 +199,16 @@ def main() -> None:
         f"  the rest: start-up, timed runs, output {floor:4.2f}"
         f"   {floor / cold:.2f}x the cold run"
     )
+    if scenes:
+        print(
+            "other scenes' default studies (diffrax-vi drift --scene ...), one round "
+            "each on an empty cache: cold, warm, and the programs kept of those traced"
+        )
+    for scene, (cold_, warm_, kept, solves) in scenes.items():
+        print(
+            f"  {scene:22s} cold {cold_:6.2f}  warm {warm_:6.2f}  "
+            f"{warm_ / cold_:.2f}x  kept {kept} of {solves}"
+        )
     print(
         "targets: --help and refused options <= 0.5x import diffrax; the main "
         "job <= 10 s cold, a warm run <= 0.35x the cold run"

@@ -229,6 +229,51 @@ def test_a_repeated_study_reads_its_programs_back(tmp_path, monkeypatch):
     assert len(traced) == 4 and not (tmp_path / "off").exists()
 
 
+def test_a_study_on_a_group_keeps_its_solves_and_still_checks_its_start(
+    tmp_path, monkeypatch
+):
+    """A variational solve checks that its start lies on its group by host callback,
+    which a kept program cannot hold: the study checks the start apart (the
+    solver's `init` as a plain solve runs it) and compiles its solves without that
+    check, so a repeated study of a rigid body reads them back. A start off its
+    group is still the row's error: in the process, where another start of the
+    same shape reuses the same programs, and under `keep_programs`, which then
+    keeps nothing."""
+    import equinox as eqx
+    from diffrax_vi.scenes import free_rigid_body
+    from diffrax_vi.study import drift
+
+    scene = free_rigid_body()
+    rotation, momentum = scene.y0
+    off = eqx.tree_at(lambda s: s.y0, scene, (1.01 * rotation, momentum))
+    traced = []
+    tracked = _run._Solves.tracked
+
+    def counting(self, y0):
+        traced.append(None)
+        return tracked(self, y0)
+
+    def result(scene):
+        (run,) = drift(scene, ["LGVI"], periods=2, steps_per_period=10).runs
+        return run.result
+
+    monkeypatch.setattr(_run._Solves, "tracked", counting)
+    message = "raised: The initial position is not on its group"
+    _programs._memo.clear()
+    assert result(off).startswith(message)
+    assert result(scene) == "successful"
+    assert result(off).startswith(message)  # The same programs, checked again.
+    assert len(traced) == 1
+    with _programs.keep_programs(tmp_path, "off"):
+        assert result(off).startswith(message)
+    assert not any(tmp_path.iterdir())
+    for _ in range(2):  # Kept, then read back.
+        _programs._memo.clear()
+        with _programs.keep_programs(tmp_path, "on"):
+            assert result(scene) == "successful"
+    assert len(traced) == 2 and len(list(tmp_path.iterdir())) == 2
+
+
 def test_a_study_run_again_in_the_process_reuses_its_programs(monkeypatch):
     """A notebook's cell rerun: a study of a new but equal scene compiles none of its
     solves and tables the same errors. Another start is an argument of the same

@@ -450,7 +450,10 @@ def check_start(
     term, t: RealScalarLike, q: Q, p: P, v: PyTree, args: Args, value: PyTree
 ) -> PyTree:
     """`value`, or an error if the start is off the constraint manifold (beyond
-    $\\sqrt{\\varepsilon}$ relative) or the constraint Jacobian loses rank there."""
+    $\\sqrt{\\varepsilon}$ relative) or the constraint Jacobian loses rank there
+    (unless the term's start is checked already: `start_checked`)."""
+    if term.start_checked:
+        return value
     g = term.constraint
     space = term.lagrangian.space
     jacobian = constraint_jacobian(g, t, q, args, space)

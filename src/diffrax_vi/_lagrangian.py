@@ -799,20 +799,24 @@ def broken_promise(
 
 
 def explicit_start(
-    lagrangian: AbstractLagrangian, t: RealScalarLike, y: tuple[Q, P], args: Args
+    lagrangian: AbstractLagrangian,
+    t: RealScalarLike,
+    y: tuple[Q, P],
+    args: Args,
+    promise: Promise = "raise",
 ) -> tuple[V, dfx.RESULTS, Extremes]:
     """`inverse_legendre` at a solve's start for a Lagrangian marked quadratic in
     `v` (`velocity_is_explicit`, without a constant mass), with the
     `symmetric_extremes` of `d2L/dv2` that the start checks: both from one
     eigendecomposition of one matrix (`symmetric_solve`), not an elimination and a
-    second matrix. Checks the promise, raising where it is broken."""
+    second matrix. Checks the promise as `promise` says (`inverse_legendre`)."""
     q, p = split_state(y, "y", lagrangian.space)
 
     def by_spectrum(matrix, b):
         x, extremes = symmetric_solve(matrix, b)
         return x, invertible(extremes, b.shape[0], b.dtype), extremes
 
-    return _explicit_velocity(lagrangian, t, q, p, args, "raise", by_spectrum)
+    return _explicit_velocity(lagrangian, t, q, p, args, promise, by_spectrum)
 
 
 def velocity_is_explicit(lagrangian: AbstractLagrangian, p: P) -> bool:

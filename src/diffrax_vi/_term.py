@@ -1,3 +1,4 @@
+import dataclasses
 from collections.abc import Callable
 
 import diffrax as dfx
@@ -153,6 +154,8 @@ class LagrangianTerm(dfx.AbstractTerm):
     # Whether a constraint's momentum projection eliminates without pivoting; see
     # `mass_is_definite`.
     mass_definite: bool = eqx.field(static=True)
+    # Whether a solve's start is taken as checked already; see `start_checked`.
+    start_checked: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -203,6 +206,7 @@ class LagrangianTerm(dfx.AbstractTerm):
         self.mass_definite = constraint is not None and mass_is_definite(
             self.lagrangian
         )
+        self.start_checked = False
 
     def hamilton(
         self,
@@ -275,6 +279,28 @@ class LagrangianTerm(dfx.AbstractTerm):
 
     def prod(self, vf: PyTree, control: RealScalarLike) -> PyTree:
         return jtu.tree_map(lambda v: control * v, vf)
+
+
+def start_checked(terms: PyTree) -> PyTree:
+    """`terms` with each `LagrangianTerm` marked as having its start checked: a
+    solver's `init` then leaves out the checks it makes by host callback (that the
+    start lies on its group and on the constraints, and that a Lagrangian marked
+    quadratic keeps its promise there), so that the solve holds no callback and an
+    executable of it can be kept between processes. For a caller that checks the
+    same start first, with `init` on `terms` themselves (the studies do). The steps
+    and the vector field keep their own checks. A marked term traces apart from its
+    original in every cache, as its mark is a static field."""
+
+    def mark(term):
+        if not isinstance(term, LagrangianTerm):
+            return term
+        marked = object.__new__(LagrangianTerm)
+        for field in dataclasses.fields(term):
+            object.__setattr__(marked, field.name, getattr(term, field.name))
+        object.__setattr__(marked, "start_checked", True)
+        return marked
+
+    return jtu.tree_map(mark, terms, is_leaf=lambda x: isinstance(x, LagrangianTerm))
 
 
 # Traced once per program: a solve evaluates Hamilton's equations at every stage of

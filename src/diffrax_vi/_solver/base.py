@@ -530,7 +530,8 @@ class AbstractVariationalSolver(AbstractTracedOnce):
         args: Args,
     ) -> VIState:
         step, state = self._start(terms, t0, t1, y0, args, self.method_init)
-        state = check_on_space(step.term.lagrangian.space, y0[0], state)
+        if not step.term.start_checked:
+            state = check_on_space(step.term.lagrangian.space, y0[0], state)
         return check_times(t0, t1, state)
 
     def resume(

@@ -72,6 +72,8 @@ def check_start(step: StepInputs) -> Start:
     )
     n = tree_size(p)
     dtype = step.dtype
+    # A start checked already (`start_checked`) takes the marker on trust.
+    promise = "trust" if step.term.start_checked else "raise"
     mass = constant_mass(lagrangian, p)
     if mass is not None:
         # A declared constant diagonal mass (separable, rigid bodies): its entries
@@ -92,11 +94,11 @@ def check_start(step: StepInputs) -> Start:
         return Start(v0, result, positive)
     if velocity_is_explicit(lagrangian, p):
         # Marked quadratic: the velocity and the extremes from one matrix.
-        v0, result, extremes = explicit_start(lagrangian, t, (q, p), args)
+        v0, result, extremes = explicit_start(lagrangian, t, (q, p), args, promise)
     else:
         # The velocity alone: Hamilton's equations would also trace the force (and
         # a constraint's index-reduced forces), which the start does not need.
-        v0, result = inverse_legendre(lagrangian, t, (q, p), args, None, "raise")
+        v0, result = inverse_legendre(lagrangian, t, (q, p), args, None, promise)
         flat_v, unravel = jax.flatten_util.ravel_pytree(v0)
 
         def hessian_vector(u):

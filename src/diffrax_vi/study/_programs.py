@@ -15,7 +15,9 @@ the scene and the methods), the program's name, its arguments' structure, shapes
 dtypes, JAX's settings (64-bit floats, `JAX_*` variables, the devices), and what XLA
 compiles for (`XLA_FLAGS`, the backend's version, the processor and its features). A
 program that holds a host callback cannot be kept (its executable calls back into
-this process); it is traced every time, as without this cache.
+this process); it is traced every time, as without this cache. The studies compile
+their solves without the callbacks that check a start, and check it apart
+(`compiled`'s `check`), before a program is kept.
 
 The folder is bounded: after each program it keeps, the files least recently written
 or read go until the folder holds at most `max_bytes` (`keep_programs`, by default
@@ -290,7 +292,12 @@ _memo = _Memo(size=48)
 
 
 def compiled(
-    name: str, fn: Callable, constants: PyTree, *args: PyTree, vmapped: bool = False
+    name: str,
+    fn: Callable,
+    constants: PyTree,
+    *args: PyTree,
+    vmapped: bool = False,
+    check: Callable[..., None] | None = None,
 ) -> Callable:
     """`fn(constants, *args)` compiled for `args`, the arrays of `constants`
     constants of the program (as a closure's are), and vmapped over `args` if
@@ -299,28 +306,43 @@ def compiled(
     `keep_programs`, the compiled program is loaded from its file where a run with
     the same key kept it, and kept there otherwise. `fn` takes and returns arrays
     in tuples, lists and dicts (a kept program's structures are pickled); `name`
-    tells apart the programs of one context."""
+    tells apart the programs of one context.
+
+    `check(*args)`, if given, raises where the program must not run on `args` (a
+    check the program leaves out). It runs before the program is kept or reused,
+    except where the program is read from its file or reused under
+    `keep_programs`: its context determines the arguments' values, and a program is
+    kept only once they passed the check."""
     key = _memo.key(name, fn, constants, args, vmapped)
     program = _memo.get(key)
     if program is None:
-        program = _compile(name, fn, constants, args, vmapped)
+        program = _compile(name, fn, constants, args, vmapped, check)
         _memo.put(key, program)
+    elif check is not None and _kept is None:
+        check(*args)
     return program
 
 
 def _compile(
-    name: str, fn: Callable, constants: PyTree, args: tuple, vmapped: bool
+    name: str,
+    fn: Callable,
+    constants: PyTree,
+    args: tuple,
+    vmapped: bool,
+    check: Callable[..., None] | None,
 ) -> Callable:
     closure = functools.partial(fn, constants)
     jitted = jax.jit(jax.vmap(closure) if vmapped else closure)
-    if _kept is None:
-        return jitted.lower(*args).compile()
-    path = _kept.path(name, args)
-    program = _read(path)
+    path = None if _kept is None else _kept.path(name, args)
+    program = None if path is None else _read(path)
     if program is not None:
         return program
+    if check is not None:
+        check(*args)
+    if path is None:
+        return jitted.lower(*args).compile()
     traced = jitted.trace(*args)
-    if _holds_callback(traced.jaxpr.jaxpr):
+    if holds_callback(traced.jaxpr.jaxpr):
         return traced.lower().compile()
     # Compiled by XLA, never loaded from JAX's persistent cache: an executable
     # loaded from it, serialised again, is kept without some of its kernels (XLA's
@@ -350,7 +372,7 @@ def _compile(
     return program
 
 
-def _holds_callback(jaxpr) -> bool:
+def holds_callback(jaxpr) -> bool:
     """Whether `jaxpr` (or one nested in it) calls back into Python: its executable
     calls into this process, and cannot be loaded in another."""
     return holds(jaxpr, lambda eqn: "callback" in eqn.primitive.name)

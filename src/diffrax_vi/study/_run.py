@@ -16,9 +16,11 @@ from jaxtyping import Array, PyTree
 
 from .._misc import all_finite
 from .._scan import FixedStepSolution, solve_fixed_steps
+from .._solver.base import AbstractStepsByFraction
+from .._term import start_checked
 from ..scenes import Scene
 from ._methods import Method
-from ._programs import compiled
+from ._programs import compiled, holds_callback
 from ._track import EnergyBalance, TrackWorstError
 
 
@@ -223,8 +225,10 @@ class Prepared:
     y0: PyTree[Array]
     ensemble: bool
     n_save: int
-    tracked: Callable
-    plain: Callable
+    tracked: Callable | None
+    plain: Callable | None
+    # The error that the check of the start raised (then no solve is compiled).
+    raised: Exception | None = None
 
 
 def run(
@@ -314,8 +318,13 @@ def prepare(
     fixed = method.fixed
     ts = jnp.linspace(0, t1, n_save + 1, dtype=dtype)
     dt0 = method.stepping.dt0(scene, method, t1, n_steps, first, dtype)
+    terms = method.terms(scene)
+    # This package's solvers check a start by host callback: the study checks it
+    # apart (`_StartCheck`), so that their solves hold none there and a study run
+    # again loads them (`compiled`). diffrax's solvers check no start.
+    ours = isinstance(method.solver, AbstractStepsByFraction)
     solves = _Solves(
-        terms=method.terms(scene),
+        terms=start_checked(terms) if ours else terms,
         solver=method.solver,
         controller=method.controller(scene),
         args=scene.args,
@@ -334,14 +343,50 @@ def prepare(
     )
     # The arrays of `solves` are constants of the compiled solves, as a closure's.
     name = f"{method.name}, {t1}, {n_steps}, {n_save}, {dtype}, {ensemble}, {progress}"
-    return Prepared(
-        scene,
-        y0,
-        ensemble,
-        n_save,
-        compiled(f"tracked {name}", _tracked, solves, y0, vmapped=ensemble),
-        compiled(f"plain {name}", _plain, solves, y0, vmapped=ensemble),
-    )
+    check = _StartCheck(method.solver, terms, solves, ensemble) if ours else None
+    try:
+        tracked = compiled(
+            f"tracked {name}", _tracked, solves, y0, vmapped=ensemble, check=check
+        )
+        plain = compiled(
+            f"plain {name}", _plain, solves, y0, vmapped=ensemble, check=check
+        )
+    except (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError) as error:
+        return Prepared(scene, y0, ensemble, n_save, None, None, _raised(error))
+    return Prepared(scene, y0, ensemble, n_save, tracked, plain)
+
+
+@dataclasses.dataclass
+class _StartCheck:
+    """The checks of a solve's start that `start_checked` leaves out of its
+    programs: the solver's `init` on the terms as they are, compiled and run on
+    `y0` where it holds any (it raises what a plain `diffeqsolve` would raise
+    there), once."""
+
+    solver: dfx.AbstractSolver
+    terms: PyTree
+    solves: _Solves
+    vmapped: bool
+    done: bool = False
+
+    def __call__(self, y0: PyTree[Array]) -> None:
+        if self.done:
+            return
+        solves = self.solves
+        # The times of the first step, as `_Solves.diffeqsolve` passes them.
+        if solves.fixed_times is not None:
+            t0, t1, dt0 = (float(x) for x in solves.fixed_times)
+        else:
+            t0, t1, dt0 = solves.ts[0], solves.ts[-1], solves.dt0
+        end = t1 if dt0 is None else t0 + dt0
+
+        def init(y):
+            return self.solver.init(self.terms, t0, end, y, solves.args)
+
+        traced = jax.jit(jax.vmap(init) if self.vmapped else init).trace(y0)
+        if holds_callback(traced.jaxpr.jaxpr):
+            jax.block_until_ready(traced.lower().compile()(y0))
+        self.done = True
 
 
 def _tracked(solves: _Solves, y0: PyTree[Array]) -> tuple:
@@ -361,17 +406,25 @@ def _result(code: np.ndarray) -> dfx.RESULTS:
 
 
 def track(prepared: Prepared) -> tuple | Exception:
-    """Run the prepared tracked solve: its outputs, or the error it raised."""
+    """Run the prepared tracked solve: its outputs, or the error it (or the check
+    of its start) raised."""
+    if prepared.raised is not None:
+        return prepared.raised
     try:
         return jax.block_until_ready(prepared.tracked(prepared.y0))
     except (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError) as error:
-        # A vector field that cannot return a RESULTS raised (a Runge-Kutta solve of
-        # a LagrangianTerm that left where the Legendre map or the constraint
-        # forces can be solved): this method's row says why, the others still run.
-        # A compiled program raises equinox's error inside JAX's own.
-        if "EquinoxRuntimeError" not in str(error):
-            raise
-        return error
+        return _raised(error)
+
+
+def _raised(error: Exception) -> Exception:
+    """`error`, if it is a check's (equinox's, which a compiled program raises
+    inside JAX's own); else raised again. A start off its group or its
+    constraints, or a vector field that cannot return a RESULTS (a Runge-Kutta
+    solve of a LagrangianTerm that left where the Legendre map or the constraint
+    forces can be solved): this method's row says why, the others still run."""
+    if "EquinoxRuntimeError" not in str(error):
+        raise error
+    return error
 
 
 def execute(prepared: Prepared, tracked: tuple | Exception | None = None) -> Outcome:
