@@ -237,8 +237,8 @@ def test_a_study_on_a_group_keeps_its_solves_and_still_checks_its_start(
     solver's `init` as a plain solve runs it) and compiles its solves without that
     check, so a repeated study of a rigid body reads them back. A start off its
     group is still the row's error: in the process, where another start of the
-    same shape reuses the same programs, and under `keep_programs`, which then
-    keeps nothing."""
+    same shape reuses the same programs and the same compiled check, and under
+    `keep_programs`, which then keeps nothing."""
     import equinox as eqx
     from diffrax_vi.scenes import free_rigid_body
     from diffrax_vi.study import drift
@@ -257,13 +257,22 @@ def test_a_study_on_a_group_keeps_its_solves_and_still_checks_its_start(
         (run,) = drift(scene, ["LGVI"], periods=2, steps_per_period=10).runs
         return run.result
 
+    checks = []
+    check_start = _run._check_start
+
+    def compiling(*args):
+        checks.append(None)
+        return check_start(*args)
+
     monkeypatch.setattr(_run._Solves, "tracked", counting)
+    monkeypatch.setattr(_run, "_check_start", compiling)
     message = "raised: The initial position is not on its group"
     _programs._memo.clear()
     assert result(off).startswith(message)
     assert result(scene) == "successful"
-    assert result(off).startswith(message)  # The same programs, checked again.
-    assert len(traced) == 1
+    # The same programs, and the same compiled check, run again.
+    assert result(off).startswith(message)
+    assert len(traced) == 1 and len(checks) == 1
     with _programs.keep_programs(tmp_path, "off"):
         assert result(off).startswith(message)
     assert not any(tmp_path.iterdir())

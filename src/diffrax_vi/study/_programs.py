@@ -323,6 +323,19 @@ def compiled(
     return program
 
 
+def memoised(name: str, make: Callable, constants: PyTree, *args: PyTree) -> Callable:
+    """`make(constants, *args)`, a function of arguments like `args` (a compiled
+    program), made once in this process for equal `constants` and arguments of the
+    same shapes (`_Memo`), as `compiled` reuses its programs; never kept between
+    runs."""
+    key = _memo.key(name, make, constants, args, False)
+    program = _memo.get(key)
+    if program is None:
+        program = make(constants, *args)
+        _memo.put(key, program)
+    return program
+
+
 def _compile(
     name: str,
     fn: Callable,

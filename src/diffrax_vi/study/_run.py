@@ -20,7 +20,7 @@ from .._solver.base import AbstractStepsByFraction
 from .._term import start_checked
 from ..scenes import Scene
 from ._methods import Method
-from ._programs import compiled, holds_callback
+from ._programs import compiled, holds_callback, memoised
 from ._track import EnergyBalance, TrackWorstError
 
 
@@ -361,7 +361,8 @@ class _StartCheck:
     """The checks of a solve's start that `start_checked` leaves out of its
     programs: the solver's `init` on the terms as they are, compiled and run on
     `y0` where it holds any (it raises what a plain `diffeqsolve` would raise
-    there), once."""
+    there), once. The compiled check is kept in the process as the solves are
+    (`memoised`)."""
 
     solver: dfx.AbstractSolver
     terms: PyTree
@@ -379,14 +380,25 @@ class _StartCheck:
         else:
             t0, t1, dt0 = solves.ts[0], solves.ts[-1], solves.dt0
         end = t1 if dt0 is None else t0 + dt0
-
-        def init(y):
-            return self.solver.init(self.terms, t0, end, y, solves.args)
-
-        traced = jax.jit(jax.vmap(init) if self.vmapped else init).trace(y0)
-        if holds_callback(traced.jaxpr.jaxpr):
-            jax.block_until_ready(traced.lower().compile()(y0))
+        start = (self.solver, self.terms, t0, end, solves.args, self.vmapped)
+        check = memoised("start check", _check_start, start, y0)
+        jax.block_until_ready(check(y0))
         self.done = True
+
+
+def _check_start(start: tuple, y0: PyTree[Array]) -> Callable:
+    """`init` of `start = (solver, terms, t0, t1, args, vmapped)` at `y0` (vmapped
+    over it if `vmapped`) compiled, where it checks anything by host callback; else
+    a function that does nothing."""
+    solver, terms, t0, t1, args, vmapped = start
+
+    def init(y):
+        return solver.init(terms, t0, t1, y, args)
+
+    traced = jax.jit(jax.vmap(init) if vmapped else init).trace(y0)
+    if holds_callback(traced.jaxpr.jaxpr):
+        return traced.lower().compile()
+    return lambda y: None
 
 
 def _tracked(solves: _Solves, y0: PyTree[Array]) -> tuple:
