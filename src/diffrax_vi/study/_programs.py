@@ -278,6 +278,16 @@ class _Memo:
                 self.programs.move_to_end(key)
             return program
 
+    def get_or_make(self, key, make: Callable[[], Callable]) -> tuple[Callable, bool]:
+        """The program under `key`, or `make()` kept under it; and whether it was
+        made now."""
+        program = self.get(key)
+        if program is not None:
+            return program, False
+        program = make()
+        self.put(key, program)
+        return program, True
+
     def put(self, key, program: Callable) -> None:
         if key is None:
             return
@@ -314,11 +324,10 @@ def compiled(
     `keep_programs`: its context determines the arguments' values, and a program is
     kept only once they passed the check."""
     key = _memo.key(name, fn, constants, args, vmapped)
-    program = _memo.get(key)
-    if program is None:
-        program = _compile(name, fn, constants, args, vmapped, check)
-        _memo.put(key, program)
-    elif check is not None and _kept is None:
+    program, made = _memo.get_or_make(
+        key, lambda: _compile(name, fn, constants, args, vmapped, check)
+    )
+    if not made and check is not None and _kept is None:
         check(*args)
     return program
 
@@ -329,11 +338,7 @@ def memoised(name: str, make: Callable, constants: PyTree, *args: PyTree) -> Cal
     same shapes (`_Memo`), as `compiled` reuses its programs; never kept between
     runs."""
     key = _memo.key(name, make, constants, args, False)
-    program = _memo.get(key)
-    if program is None:
-        program = make(constants, *args)
-        _memo.put(key, program)
-    return program
+    return _memo.get_or_make(key, lambda: make(constants, *args))[0]
 
 
 def _compile(
