@@ -15,11 +15,14 @@ Every time is the wall time of a fresh process, as a user starts it:
 - a second warm run, which also records the span in which the study readies its
   solves (`prepare` and `track`: loading or compiling, the untimed tracked runs,
   from the first start to the last end, on both cores), and the rest of the run
-  (start-up, imports, the timed runs, the tables and figures).
+  (start-up, imports, the timed runs, the tables and figures);
+- the default studies of other scenes (`--scenes`: a rigid body, a mechanism and an
+  articulated body), cold then warm on an empty cache, one round each, and how many
+  of the solves they trace are kept.
 
-Each time is the fastest of `--rounds` (3), each round on empty caches, as a fresh
-process's time moves by a second from one run of the main job to the next on this
-machine (as in `first_call.py`).
+Each time of the main job is the fastest of `--rounds` (3), each round on empty
+caches, as a fresh process's time moves by a second from one run of the main job to
+the next on this machine (as in `first_call.py`).
 
 Each process may write Python's bytecode cache, as on a user's machine, where the
 package's modules are compiled once (at installation, or at the first import of an
