@@ -30,7 +30,8 @@ editable install); an environment that sets `PYTHONDONTWRITEBYTECODE` (this
 machine's does) would otherwise have every process compile diffrax_vi's source
 again, 0.1 s of each run.
 
-Run: `python benchmarks/startup.py [--rounds 3]` (recorded: `results/startup_cpu.txt`).
+Run: `python benchmarks/startup.py [--rounds 3] [--scenes a,b]` (recorded:
+`results/startup_cpu.txt`).
 """
 
 import argparse
