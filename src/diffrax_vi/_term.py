@@ -1,4 +1,4 @@
-import dataclasses
+import copy
 from collections.abc import Callable
 
 import diffrax as dfx
@@ -294,9 +294,7 @@ def start_checked(terms: PyTree) -> PyTree:
     def mark(term):
         if not isinstance(term, LagrangianTerm):
             return term
-        marked = object.__new__(LagrangianTerm)
-        for field in dataclasses.fields(term):
-            object.__setattr__(marked, field.name, getattr(term, field.name))
+        marked = copy.copy(term)  # Not through `__init__`, which unmarks it.
         object.__setattr__(marked, "start_checked", True)
         return marked
 

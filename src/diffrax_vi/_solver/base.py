@@ -406,16 +406,29 @@ def hermite_dense_info(
     Only evaluated if the output is interpolated: otherwise it is dead code that XLA
     removes.
     """
-    term, args = step.term, step.args
-    space = term.lagrangian.space
 
     def scaled_field(t, y):
-        (v, dp), _ = term.hamilton(t, y, args, v_guess=v_guess)
-        return jtu.tree_map(lambda x: step.h * x, (velocity(space, y[0], v), dp))
+        f = hamilton_field(step.term, t, y, step.args, v_guess)
+        return jtu.tree_map(lambda x: step.h * x, f)
 
     return dict(
         y0=y0, y1=y1, k0=scaled_field(step.t0, y0), k1=scaled_field(step.t1, y1)
     )
+
+
+def hamilton_field(
+    term: LagrangianTerm,
+    t: RealScalarLike,
+    y: PyTree,
+    args: Args,
+    v_guess: V | None = None,
+) -> PyTree:
+    """Hamilton's equations as the term's vector field (on a group, $\\dot q$ from
+    the velocity), with the quadratic marker taken on trust: without `vf`'s check,
+    a host callback that would break the time-stepping loop into kernels where a
+    solve interpolates, after its start has checked the marker."""
+    (v, dp), _ = term.hamilton(t, y, args, v_guess=v_guess)
+    return velocity(term.lagrangian.space, y[0], v), dp
 
 
 def is_symmetric(solver) -> bool:
@@ -614,14 +627,10 @@ class AbstractVariationalSolver(AbstractTracedOnce):
     def func(
         self, terms: dfx.AbstractTerm, t0: RealScalarLike, y0: PyTree, args: Args
     ) -> PyTree:
-        """Hamilton's equations, the term's vector field, as a step's dense output
-        evaluates them (`hermite_dense_info`; a composition's, through this), with
-        the quadratic marker taken on trust: `init` checked it at the start, and
-        `vf`'s check, a host callback, would break the time-stepping loop into
-        kernels where a solve interpolates."""
+        """`hamilton_field`, as a step's dense output evaluates it (a
+        composition's, through this)."""
         term, direction = unwrap_term(terms, type(self).__name__)
-        (v, dp), _ = term.hamilton(t0 * direction, y0, args)
-        return velocity(term.lagrangian.space, y0[0], v), dp
+        return hamilton_field(term, t0 * direction, y0, args)
 
     def root_of_inverse(
         self, terms: dfx.AbstractTerm, solver_state: VIState
