@@ -427,3 +427,55 @@ def test_a_kept_solve_is_its_traces_program_compiled_apart_from_jaxs_cache(
         outputs = [jax.tree.leaves(f(scene.y0)) for f in (a, b)]
         assert all(np.all(np.isfinite(x)) for x in outputs[0])
         assert all(np.array_equal(x, y) for x, y in zip(*outputs))
+
+
+def test_a_study_keeps_the_tracked_runge_kutta_solve_of_a_mechanism(tmp_path):
+    """A Runge-Kutta step evaluates a constrained term's vector field, which raises
+    by host callback where the constraint forces cannot be solved. The study's
+    tracked solve makes NaN there instead: it holds no callback and is kept (the
+    timed solve, as a user runs it, holds the check and is not), and its errors
+    are those of the user's solve at every step. Where the vector field fails, the
+    timed solve raises why (at 5 steps a swing, Tsit5 leaves the rod and grows
+    without bound within 3 swings), and that is the row, kept or not."""
+    import diffrax as dfx
+    from diffrax_vi.scenes import cartesian_pendulum
+    from diffrax_vi.study import drift
+
+    scene = cartesian_pendulum()
+
+    def study(periods, steps_per_period):
+        (run,) = drift(
+            scene,
+            ["Tsit5"],
+            periods=periods,
+            steps_per_period=steps_per_period,
+            n_save=2,
+        ).runs
+        return run
+
+    _programs._memo.clear()
+    with _programs.keep_programs(tmp_path, "rk"):
+        run = study(2, 50)
+    assert run.result == "successful" and len(list(tmp_path.iterdir())) == 1
+    sol = dfx.diffeqsolve(
+        scene.term(),
+        dfx.Tsit5(),
+        0.0,
+        2 * scene.period,
+        scene.period / 50,
+        scene.y0,
+        scene.args,
+        saveat=dfx.SaveAt(steps=True),
+        max_steps=100,
+    )
+    energy = jax.vmap(lambda y: scene.energy(0.0, y, scene.args))(sol.ys)
+    drift_ = np.abs(np.asarray(energy - scene.energy(0.0, scene.y0, scene.args)))
+    halves = drift_.reshape(2, 50).max(axis=1)
+    assert np.allclose(run.errors["energy"][1:], halves, rtol=1e-9, atol=0)
+    assert np.all(halves > 1e-8)
+    for _ in range(2):  # Compiled, then the tracked solve read back.
+        _programs._memo.clear()
+        with _programs.keep_programs(tmp_path, "rk, unstable"):
+            failed = study(10, 5)
+        assert failed.result.startswith("raised: The constraint forces cannot")
+    assert len(list(tmp_path.iterdir())) == 2

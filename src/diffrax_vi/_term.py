@@ -156,6 +156,8 @@ class LagrangianTerm(dfx.AbstractTerm):
     mass_definite: bool = eqx.field(static=True)
     # Whether a solve's start is taken as checked already; see `start_checked`.
     start_checked: bool = eqx.field(static=True)
+    # Whether the vector field makes NaN where it would raise; see `nan_on_failure`.
+    nan_on_failure: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -207,6 +209,7 @@ class LagrangianTerm(dfx.AbstractTerm):
             self.lagrangian
         )
         self.start_checked = False
+        self.nan_on_failure = False
 
     def hamilton(
         self,
@@ -272,6 +275,10 @@ class LagrangianTerm(dfx.AbstractTerm):
             ),
         )
         failed = ~ok | broken | ~all_finite(f)
+        if self.nan_on_failure:
+            return jtu.tree_map(
+                lambda x: jnp.where(failed & all_finite(y), jnp.nan, x), f
+            )
         return eqx.branched_error_if(f, failed & all_finite(y), index, VF_ERRORS)
 
     def contr(self, t0: RealScalarLike, t1: RealScalarLike, **kwargs) -> RealScalarLike:
@@ -291,14 +298,39 @@ def start_checked(terms: PyTree) -> PyTree:
     and the vector field keep their own checks. A marked term traces apart from its
     original in every cache, as its mark is a static field."""
 
+    return _marked(terms, "start_checked", lambda term: True)
+
+
+def nan_on_failure(terms: PyTree) -> PyTree:
+    """`terms` with the vector field of each `LagrangianTerm` that checks its
+    evaluations (a constraint's, or a Lagrangian's whose velocity the momentum
+    alone does not settle) making NaN where it would raise, with no host callback:
+    a Runge-Kutta solve of them compiles its loop whole (several times faster
+    steps) and an executable of it can be kept between processes. For a
+    caller that runs the same solve of `terms` themselves to learn why it failed
+    where this one ends in NaN (a study's tracked solve, beside its timed one). A
+    marked term traces apart from its original in every cache, as its mark is a
+    static field."""
+    return _marked(terms, "nan_on_failure", lambda term: not term.mass_checked)
+
+
+def _marked(terms: PyTree, field: str, applies: Callable) -> PyTree:
+    """`terms` with each `LagrangianTerm` for which `applies(term)` a copy whose
+    static `field` is True (`terms` itself where none is)."""
+    is_term = lambda x: isinstance(x, LagrangianTerm)
+    if not any(
+        applies(t) for t in jtu.tree_leaves(terms, is_leaf=is_term) if is_term(t)
+    ):
+        return terms
+
     def mark(term):
-        if not isinstance(term, LagrangianTerm):
+        if not is_term(term) or not applies(term):
             return term
         marked = copy.copy(term)  # Not through `__init__`, which unmarks it.
-        object.__setattr__(marked, "start_checked", True)
+        object.__setattr__(marked, field, True)
         return marked
 
-    return jtu.tree_map(mark, terms, is_leaf=lambda x: isinstance(x, LagrangianTerm))
+    return jtu.tree_map(mark, terms, is_leaf=is_term)
 
 
 # Traced once per program: a solve evaluates Hamilton's equations at every stage of

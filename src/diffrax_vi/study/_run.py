@@ -17,7 +17,7 @@ from jaxtyping import Array, PyTree
 from .._misc import all_finite
 from .._scan import FixedStepSolution, solve_fixed_steps
 from .._solver.base import AbstractStepsByFraction
-from .._term import start_checked
+from .._term import nan_on_failure, start_checked
 from ..scenes import Scene
 from ._methods import Method
 from ._programs import compiled, holds_callback, memoised
@@ -344,9 +344,19 @@ def prepare(
     # The arrays of `solves` are constants of the compiled solves, as a closure's.
     name = f"{method.name}, {t1}, {n_steps}, {n_save}, {dtype}, {ensemble}, {progress}"
     check = _StartCheck(method.solver, terms, solves, ensemble) if ours else None
+    # A Runge-Kutta step evaluates the vector field, which raises by host callback
+    # where a mechanism's constraint forces or a Legendre map cannot be solved:
+    # the tracked solve's makes NaN there instead, so that it compiles its loop
+    # whole and is kept, and the timed solve, a user's, raises why (`execute`).
+    watched_terms = terms if ours else nan_on_failure(terms)
+    watched = (
+        solves
+        if watched_terms is terms
+        else eqx.tree_at(lambda s: s.terms, solves, watched_terms)
+    )
     try:
         tracked = compiled(
-            f"tracked {name}", _tracked, solves, y0, vmapped=ensemble, check=check
+            f"tracked {name}", _tracked, watched, y0, vmapped=ensemble, check=check
         )
         plain = compiled(
             f"plain {name}", _plain, solves, y0, vmapped=ensemble, check=check
@@ -458,10 +468,14 @@ def execute(prepared: Prepared, tracked: tuple | Exception | None = None) -> Out
     # Compiled already (`prepare`): the best of the calls is the time, with no call
     # to warm up first.
     times = []
-    while len(times) < 3 and sum(times) < 1.0:
-        start = time.perf_counter()
-        jax.block_until_ready(plain(y0))
-        times.append(time.perf_counter() - start)
+    try:
+        while len(times) < 3 and sum(times) < 1.0:
+            start = time.perf_counter()
+            jax.block_until_ready(plain(y0))
+            times.append(time.perf_counter() - start)
+    except (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError) as error:
+        # A vector field that raised where the tracked solve's made NaN.
+        return _failed(scene, y0, ensemble, n_save, _raised(error))
     wall_time = min(times)
     if not ensemble:
         errors, final, steps, code = jax.tree.map(
