@@ -533,7 +533,10 @@ def test_jit_vmap_grad_through_forced_and_constrained_solves():
     # compilation (a Python float would be a new static Lagrangian each time).
     single = jax.jit(final_x)
     eps = 1e-5
-    fd = (single(1.0 + eps) - single(1.0 - eps)) / (2 * eps)
+    # Entries of an array, as the loop's gravities below are: a Python float is
+    # weakly typed, and `jax.jit` compiles for it apart.
+    up, down = jnp.array([1.0 + eps, 1.0 - eps])
+    fd = (single(up) - single(down)) / (2 * eps)
     assert abs(float(grad) - float(fd)) < 1e-7 * max(1.0, abs(float(fd)))
     # vmap over gravities equals a loop
     gs = jnp.array([0.5, 1.0, 2.0])
