@@ -179,7 +179,7 @@ def test_krylov_newton_gradient_equals_dense_newtons(system):
         assert loop_breakers(program.as_text()) == []
         return program
 
-    dense = gradient(dvi.Newton(linear_solver="dense"))(y0[0], one)
+    dense = jax.jit(gradient(dvi.Newton(linear_solver="dense")))(y0[0], one)
     assert jnp.max(jnp.abs(dense)) > 1e-2
     krylov = compiled(jax.jit(gradient()).trace(y0[0], one))
     gradients = [krylov(y0[0], one)]
