@@ -490,7 +490,7 @@ def test_a_run_that_raises_is_a_row_of_the_study():
     so, and the other rows are kept: adaptive Tsit5's, which stays near the rod,
     here rather than a variational solver's, whose constrained steps take longer to
     compile. (Tsit5 on the four-bar linkage at 50 steps per turn raises the same
-    way; its solves take 3x as long to compile.)"""
+    way; that study took 3x as long, 12.3 against 4.0 s.)"""
     study = dvi.study.drift(
         dvi.scenes.cartesian_pendulum(),
         ["Tsit5", "Tsit5+PID"],
