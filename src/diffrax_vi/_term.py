@@ -265,6 +265,9 @@ class LagrangianTerm(dfx.AbstractTerm):
         # A vector field cannot return a RESULTS: each cause raises its own message.
         ok = result == dfx.RESULTS.successful
         broken = ok & broken_promise(self.lagrangian, t, y, args, v)
+        failed = (~ok | broken | ~all_finite(f)) & all_finite(y)
+        if self.nan_on_failure:
+            return jtu.tree_map(lambda x: jnp.where(failed, jnp.nan, x), f)
         index = jnp.where(
             broken,
             4,
@@ -274,12 +277,7 @@ class LagrangianTerm(dfx.AbstractTerm):
                 jnp.where(result == dfx.RESULTS.breakdown, 1, 2),
             ),
         )
-        failed = ~ok | broken | ~all_finite(f)
-        if self.nan_on_failure:
-            return jtu.tree_map(
-                lambda x: jnp.where(failed & all_finite(y), jnp.nan, x), f
-            )
-        return eqx.branched_error_if(f, failed & all_finite(y), index, VF_ERRORS)
+        return eqx.branched_error_if(f, failed, index, VF_ERRORS)
 
     def contr(self, t0: RealScalarLike, t1: RealScalarLike, **kwargs) -> RealScalarLike:
         return t1 - t0

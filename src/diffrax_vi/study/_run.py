@@ -361,7 +361,7 @@ def prepare(
         plain = compiled(
             f"plain {name}", _plain, solves, y0, vmapped=ensemble, check=check
         )
-    except (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError) as error:
+    except _CHECKS as error:
         return Prepared(scene, y0, ensemble, n_save, None, None, _raised(error))
     return Prepared(scene, y0, ensemble, n_save, tracked, plain)
 
@@ -434,8 +434,13 @@ def track(prepared: Prepared) -> tuple | Exception:
         return prepared.raised
     try:
         return jax.block_until_ready(prepared.tracked(prepared.y0))
-    except (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError) as error:
+    except _CHECKS as error:
         return _raised(error)
+
+
+# What a compiled program raises where one of its checks fails: equinox's error, or
+# JAX's around it (`_raised` tells them from other runtime errors).
+_CHECKS = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError)
 
 
 def _raised(error: Exception) -> Exception:
@@ -473,7 +478,7 @@ def execute(prepared: Prepared, tracked: tuple | Exception | None = None) -> Out
             start = time.perf_counter()
             jax.block_until_ready(plain(y0))
             times.append(time.perf_counter() - start)
-    except (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError) as error:
+    except _CHECKS as error:
         # A vector field that raised where the tracked solve's made NaN.
         return _failed(scene, y0, ensemble, n_save, _raised(error))
     wall_time = min(times)
