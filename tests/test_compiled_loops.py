@@ -142,6 +142,88 @@ def test_a_solve_that_interpolates_compiles_its_loop_whole(solver):
     assert loop_breakers(text) == []
 
 
+# Tsit5 on the Cartesian pendulum's term, whose vector field solves the constraint
+# force and checks it: the final state of 40 steps a swing over two swings, and the
+# result of `solve_fixed_steps` at 5 steps a swing, where the solution leaves the rod.
+_CHECK_CASE = """
+import json
+import diffrax as dfx
+import jax
+import numpy as np
+jax.config.update("jax_enable_x64", True)
+import diffrax_vi as dvi
+from diffrax_vi.diagnostics import loop_breakers
+
+scene = dvi.scenes.cartesian_pendulum()
+term = scene.term()
+
+
+def run(y0):
+    return dfx.diffeqsolve(
+        term, dfx.Tsit5(), 0.0, 2 * scene.period, scene.period / 40, y0,
+        args=scene.args, saveat=dfx.SaveAt(t1=True), max_steps=80,
+    ).ys
+
+
+compiled = jax.jit(run).lower(scene.y0).compile()
+coarse = dvi.solve_fixed_steps(
+    term, dfx.Tsit5(), 0.0, 20 * scene.period, scene.period / 5, scene.y0, scene.args
+)
+print(json.dumps(dict(
+    breakers=loop_breakers(compiled.as_text()),
+    final=[np.asarray(x).tolist() for x in jax.tree.leaves(compiled(scene.y0))],
+    coarse=str(coarse.result == dfx.RESULTS.nonfinite),
+)))
+"""
+
+
+def test_eqx_on_error_nan_compiles_a_checked_vector_fields_loop_whole():
+    """The switch the errors page gives for timing Runge-Kutta steps without the
+    vector field's check: under `EQX_ON_ERROR=nan` (read when equinox is imported,
+    so in a fresh process) the check of a mechanism's constraint forces is no host
+    callback, Tsit5's loop holds no loop breaker, and its solution is the checked
+    solve's; `solve_fixed_steps` still reports the failure of a solve that leaves
+    the rod as `RESULTS.nonfinite` (the checked one raises)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-c", _CHECK_CASE],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "EQX_ON_ERROR": "nan"},
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["breakers"] == []
+    assert out["coarse"] == "True"
+    scene = make_scene("cartesian_pendulum")
+    checked = (
+        jax.jit(
+            lambda y0: (
+                dfx.diffeqsolve(
+                    scene.term(),
+                    dfx.Tsit5(),
+                    0.0,
+                    2 * scene.period,
+                    scene.period / 40,
+                    y0,
+                    args=scene.args,
+                    saveat=dfx.SaveAt(t1=True),
+                    max_steps=80,
+                ).ys
+            )
+        )
+        .lower(scene.y0)
+        .compile()
+    )
+    assert loop_breakers(checked.as_text())
+    for ours, theirs in zip(jax.tree.leaves(checked(scene.y0)), out["final"]):
+        np.testing.assert_allclose(np.asarray(ours), theirs, rtol=1e-12, atol=1e-14)
+
+
 def test_a_studys_tracked_solve_compiles_its_loop_whole():
     """A study evaluates every conserved quantity at every step of its tracked
     solve. The double pendulum's energy inverts the Legendre map of a Lagrangian
