@@ -1,5 +1,7 @@
 import concurrent.futures
+import contextlib
 import dataclasses
+import logging
 import math
 import os
 import re
@@ -268,19 +270,20 @@ def run(
     (vmapped for an ensemble), saving only `t1`: what the method costs a user
     rather than the study: the best of up to three compiled calls, as many as start
     within a second."""
-    return execute(
-        prepare(
-            scene,
-            method,
-            t1=t1,
-            n_steps=n_steps,
-            n_save=n_save,
-            dtype=dtype,
-            y0=y0,
-            ensemble=ensemble,
-            progress=progress,
+    with _quiet_checks():
+        return execute(
+            prepare(
+                scene,
+                method,
+                t1=t1,
+                n_steps=n_steps,
+                n_save=n_save,
+                dtype=dtype,
+                y0=y0,
+                ensemble=ensemble,
+                progress=progress,
+            )
         )
-    )
 
 
 def run_all(scene: Scene, methods: list[Method], **kwargs) -> list[Outcome]:
@@ -296,9 +299,33 @@ def run_all(scene: Scene, methods: list[Method], **kwargs) -> list[Outcome]:
         return prepared, track(prepared)
 
     workers = max(1, min(len(methods), os.cpu_count() or 1))
-    with concurrent.futures.ThreadPoolExecutor(workers) as pool:
-        done = list(pool.map(ready, methods))
-    return [execute(prepared, tracked) for prepared, tracked in done]
+    with _quiet_checks():
+        with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+            done = list(pool.map(ready, methods))
+        return [execute(prepared, tracked) for prepared, tracked in done]
+
+
+class _CheckFailed(logging.Filter):
+    """Drops JAX's log of a host callback that raised ("jax.pure_callback failed",
+    with the traceback of equinox's check): a study catches that check's error and
+    tables its message (`_raised`), and any other error is raised again, with its
+    traceback."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.getMessage() != "jax.pure_callback failed"
+
+
+@contextlib.contextmanager
+def _quiet_checks():
+    """While a study runs its solves, a check that fails in one of them is that
+    method's row, not a traceback on stderr before the table."""
+    logger = logging.getLogger("jax._src.callback")
+    quiet = _CheckFailed()
+    logger.addFilter(quiet)
+    try:
+        yield
+    finally:
+        logger.removeFilter(quiet)
 
 
 def prepare(
