@@ -436,7 +436,9 @@ def test_a_study_keeps_the_tracked_runge_kutta_solve_of_a_mechanism(tmp_path):
     timed solve, as a user runs it, holds the check and is not), and its errors
     are those of the user's solve at every step. Where the vector field fails, the
     timed solve raises why (at 5 steps a swing, Tsit5 leaves the rod and grows
-    without bound within 3 swings), and that is the row, kept or not."""
+    without bound within 3 swings), and that is the row, kept or not. The run and
+    the verdict say that its time includes the check (`DriftRun.checked`;
+    tests/test_study.py::test_cli_end_to_end: a separable scene's does not)."""
     import diffrax as dfx
     from diffrax_vi.scenes import cartesian_pendulum
     from diffrax_vi.study import drift
@@ -444,19 +446,20 @@ def test_a_study_keeps_the_tracked_runge_kutta_solve_of_a_mechanism(tmp_path):
     scene = cartesian_pendulum()
 
     def study(periods, steps_per_period):
-        (run,) = drift(
+        result = drift(
             scene,
             ["Tsit5"],
             periods=periods,
             steps_per_period=steps_per_period,
             n_save=2,
-        ).runs
-        return run
+        )
+        return result.runs[0], result.verdict()
 
     _programs._memo.clear()
     with _programs.keep_programs(tmp_path, "rk"):
-        run = study(2, 50)
+        run, verdict = study(2, 50)
     assert run.result == "successful" and len(list(tmp_path.iterdir())) == 1
+    assert run.checked and "times of Tsit5 include their vector field's" in verdict
     sol = dfx.diffeqsolve(
         scene.term(),
         dfx.Tsit5(),
@@ -476,6 +479,6 @@ def test_a_study_keeps_the_tracked_runge_kutta_solve_of_a_mechanism(tmp_path):
     for _ in range(2):  # Compiled, then the tracked solve read back.
         _programs._memo.clear()
         with _programs.keep_programs(tmp_path, "rk, unstable"):
-            failed = study(10, 5)
+            failed, _ = study(10, 5)
         assert failed.result.startswith("raised: The constraint forces cannot")
     assert len(list(tmp_path.iterdir())) == 2

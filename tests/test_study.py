@@ -226,6 +226,9 @@ def test_cli_end_to_end(tmp_path, capsys):
             run.max_error("energy"), rel=1e-12
         )
         assert int(by_name[run.solver]["steps"]) == 100
+        # Kepler's separable term checks its mass once: no check in Tsit5's steps.
+        assert not run.checked
+    assert "vector field" not in api.verdict()
     data = json.loads((out / "drift.json").read_text())
     assert data["scene"] == "kepler" and len(data["series"]["Tsit5"]["energy"]) == 11
     # The step actually taken: two periods of 2 pi in 100 steps.

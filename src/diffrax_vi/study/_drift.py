@@ -44,6 +44,10 @@ class DriftRun:
     - `symplectic`: a symplectic method at the study's fixed step.
     - `reversible`: a symmetric method stepped by a
         [`diffrax_vi.ReversibleController`][] (`+Adaptive`).
+    - `checked`: a Runge–Kutta method whose vector field checks every evaluation by
+        a host callback (a Lagrangian whose velocity or constraint forces can fail),
+        which `wall_time` includes; `EQX_ON_ERROR=nan` times it without (see
+        [Failures and errors](../errors.md)).
     """
 
     solver: str
@@ -54,6 +58,7 @@ class DriftRun:
     errors: dict[str, np.ndarray]
     symplectic: bool = False
     reversible: bool = False
+    checked: bool = False
 
     def max_error(self, name: str) -> float:
         """The largest error of the invariant `name` over the whole run (NaN after a
@@ -129,7 +134,8 @@ class DriftStudy:
         the lowest energy error times wall time (the best error for the work); and
         how the errors of the non-symplectic runs grow from the first to the last
         tenth of the horizon against those of the symplectic runs (and of the
-        reversible adaptive runs, `+Adaptive`)."""
+        reversible adaptive runs, `+Adaptive`); and which runs' times include their
+        vector field's check of every evaluation (`DriftRun.checked`)."""
         ok = [r for r in self.runs if r.result == "successful"]
         if not ok:
             return "Verdict: every run failed (see the result column)."
@@ -190,6 +196,12 @@ class DriftStudy:
         failed = len(self.runs) - len(ok)
         if failed:
             parts.append(f"{failed} run(s) failed")
+        checked = [r.solver for r in self.runs if r.checked]
+        if checked:
+            parts.append(
+                f"the times of {', '.join(checked)} include their vector field's "
+                "check of every evaluation (EQX_ON_ERROR=nan times them without it)"
+            )
         return "Verdict: " + "; ".join(parts) + "."
 
     def write(self, out: str | pathlib.Path) -> list[pathlib.Path]:
@@ -387,6 +399,7 @@ def drift(
                 symplectic=method.fixed
                 and isinstance(method.solver, AbstractSymplecticSolver),
                 reversible=isinstance(method.stepping, ReversibleSteps),
+                checked=outcome.checked,
             )
         )
     return DriftStudy(

@@ -42,6 +42,9 @@ class Outcome:
     steps: int
     wall_time: float
     results: list[str]
+    # Whether the timed solve checks every evaluation of its vector field by a host
+    # callback, which its time includes (`checks_every_evaluation`).
+    checked: bool = False
 
     @property
     def result(self) -> str:
@@ -231,6 +234,7 @@ class Prepared:
     plain: Callable | None
     # The error that the check of the start raised (then no solve is compiled).
     raised: Exception | None = None
+    checked: bool = False
 
 
 def run(
@@ -381,6 +385,9 @@ def prepare(
         if watched_terms is terms
         else eqx.tree_at(lambda s: s.terms, solves, watched_terms)
     )
+    checked = watched_terms is not terms and checks_every_evaluation(
+        terms, ts[0], first, scene.args
+    )
     try:
         tracked = compiled(
             f"tracked {name}", _tracked, watched, y0, vmapped=ensemble, check=check
@@ -390,7 +397,16 @@ def prepare(
         )
     except _CHECKS as error:
         return Prepared(scene, y0, ensemble, n_save, None, None, _raised(error))
-    return Prepared(scene, y0, ensemble, n_save, tracked, plain)
+    return Prepared(scene, y0, ensemble, n_save, tracked, plain, checked=checked)
+
+
+def checks_every_evaluation(terms: PyTree, t0, y0: PyTree, args: PyTree) -> bool:
+    """Whether the vector field of `terms` at `y0` checks its evaluation by a host
+    callback (a `LagrangianTerm` whose velocity or constraint forces can fail), so
+    that a Runge-Kutta solve's time includes that check in every stage: not under
+    equinox's `EQX_ON_ERROR=nan`, which makes the check a NaN."""
+    jaxpr = jax.make_jaxpr(lambda y: terms.vf(t0, y, args))(y0)
+    return holds_callback(jaxpr.jaxpr)
 
 
 @dataclasses.dataclass
@@ -525,6 +541,7 @@ def execute(prepared: Prepared, tracked: tuple | Exception | None = None) -> Out
         steps=int(np.max(steps)),
         wall_time=wall_time,
         results=results,
+        checked=prepared.checked,
     )
 
 
