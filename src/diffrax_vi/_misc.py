@@ -158,9 +158,17 @@ def error_if(x: PyTree, failed: bool | Bool[Array, ""], message: str) -> PyTree:
     """`x`, or an error if `failed`: a `ValueError` now where `failed` is known when
     traced (computed from concrete values), else at run time (`eqx.error_if`, a host
     callback: XLA then no longer compiles a loop around it as one function, and JAX's
-    persistent compilation cache stores no program that holds one)."""
+    persistent compilation cache stores no program that holds one). At run time
+    the check is attached to the floating leaves of `x` alone where it has any:
+    under `EQX_ON_ERROR=nan` equinox fills the leaves it is given instead of
+    raising, NaN in a float but the largest value in an integer, which in a
+    solver's state made a `RESULTS` that names no outcome; a NaN state is reported
+    as `nonfinite` by the steps that take it."""
     if isinstance(failed, jax.core.Tracer):
-        return eqx.error_if(x, failed, message)
+        floats, rest = eqx.partition(x, eqx.is_inexact_array)
+        if not jax.tree.leaves(floats):
+            return eqx.error_if(x, failed, message)
+        return eqx.combine(eqx.error_if(floats, failed, message), rest)
     if failed:
         raise ValueError(message)
     return x
