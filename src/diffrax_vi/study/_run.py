@@ -385,8 +385,9 @@ def prepare(
         if watched_terms is terms
         else eqx.tree_at(lambda s: s.terms, solves, watched_terms)
     )
+    # (The start time read on the host, as `fixed_times` below.)
     checked = watched_terms is not terms and checks_every_evaluation(
-        terms, ts[0], first, scene.args
+        terms, np.asarray(ts)[0], first, scene.args
     )
     try:
         tracked = compiled(
